@@ -1,0 +1,2 @@
+"""Data: WOMD TFRecords <-> SimulatorState."""
+from pcdiff_jax.data import womd

@@ -1,0 +1,105 @@
+"""The functional simulator: reset, step and a `lax.scan` rollout.
+
+Every function is pure and works on any leading batch dims (one timestep per
+scenario), so it can be jitted once and vmapped or batched over scenarios.
+"""
+from __future__ import annotations
+
+from typing import Any, Optional
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from pcdiff_jax.sim.actors import Actor
+from pcdiff_jax.sim.datatypes import Action, Array, SimulatorState, Trajectory, slice_time, update_time
+from pcdiff_jax.sim.dynamics import KinematicModel
+
+DEFAULT_DYNAMICS = KinematicModel()
+WOMD_INIT_STEPS = 11  # 10 past steps + the current one
+
+
+def reset(state: SimulatorState, init_steps: int = WOMD_INIT_STEPS) -> SimulatorState:
+  """Prepares a loaded state for simulation, as Waymax's `env.reset`.
+
+  timestep = init_steps - 1 (10 for WOMD: the current step); the sim
+  trajectory equals the log up to it and is invalid (zeros) after it.
+  """
+  num_t = state.total_timesteps
+  if not 0 < init_steps <= num_t:
+    raise ValueError(f"init_steps={init_steps} must be in [1, {num_t}]")
+  keep = jnp.arange(num_t) < init_steps                      # (T,)
+  sim = jax.tree_util.tree_map(lambda x: jnp.where(keep, x, jnp.zeros_like(x)), state.log_trajectory)
+  return state.replace(sim_trajectory=sim,
+                       timestep=jnp.full(state.shape, init_steps - 1, jnp.int32))
+
+
+def step(state: SimulatorState, action: Action, controlled: Array,
+         dynamics: Any = DEFAULT_DYNAMICS) -> SimulatorState:
+  """Advances the sim trajectory by one step.
+
+  Controlled objects (..., O) move by `dynamics.forward(current, action)`;
+  a controlled object whose action is invalid becomes invalid. Every other
+  object takes the logged next step. Sizes and z of controlled objects are
+  carried from the current step; timestamps come from the log (or advance by
+  0.1 s where the log has none).
+
+  Args: state (...); action data (..., O, D), valid (..., O, 1);
+    controlled (..., O) bool.
+  Returns: the state at timestep + 1. Stepping past the last step is the
+    caller's error (the scan lengths guard it).
+  """
+  current = state.current_sim_trajectory                       # (..., O, 1)
+  log_next = slice_time(state.log_trajectory, state.timestep + 1)
+  moved = dynamics.forward(current, action)
+  fallback_ts = jnp.where(log_next.valid, log_next.timestamp_micros, current.timestamp_micros + 100_000)
+  moved = moved.replace(timestamp_micros=fallback_ts)
+  ctrl = controlled[..., None]                                  # (..., O, 1)
+  nxt = jax.tree_util.tree_map(lambda a, b: jnp.where(ctrl, a, b).astype(b.dtype), moved, log_next)
+  sim = update_time(state.sim_trajectory, state.timestep + 1, nxt)
+  md = state.object_metadata.replace(is_controlled=controlled)
+  return state.replace(sim_trajectory=sim, timestep=state.timestep + 1, object_metadata=md)
+
+
+@struct.dataclass
+class RolloutCarry:
+  """The scan carry of `rollout`."""
+  state: SimulatorState
+  actor_state: Any
+  rng: Array
+
+
+@struct.dataclass
+class RolloutOutput:
+  """final_state: after the rollout (its sim_trajectory holds every step);
+  actions: data (S, ..., O, D), valid (S, ..., O, 1); is_controlled (S, ..., O)."""
+  final_state: SimulatorState
+  actions: Action
+  is_controlled: Array
+
+  @property
+  def trajectory(self) -> Trajectory:
+    """(..., O, T) the stacked simulated trajectory."""
+    return self.final_state.sim_trajectory
+
+
+def rollout(state: SimulatorState, actor: Actor, num_steps: int, rng: Array,
+            params: Any = None, actor_state: Any = None,
+            dynamics: Any = DEFAULT_DYNAMICS) -> RolloutOutput:
+  """Runs `actor` in closed loop for `num_steps` steps as one `lax.scan`.
+
+  Jit it with `num_steps` static (and the actor/dynamics closed over). The
+  key for step k is `fold_in(rng, k)`, so results do not depend on how the
+  loop is split.
+  """
+  if actor_state is None:
+    actor_state = actor.init(rng, state)
+
+  def body(carry: RolloutCarry, k):
+    out = actor.select_action(params, carry.state, carry.actor_state, jax.random.fold_in(carry.rng, k))
+    new_state = step(carry.state, out.action, out.is_controlled, dynamics)
+    return carry.replace(state=new_state, actor_state=out.actor_state), (out.action, out.is_controlled)
+
+  carry, (actions, controlled) = jax.lax.scan(
+      body, RolloutCarry(state=state, actor_state=actor_state, rng=rng), jnp.arange(num_steps))
+  return RolloutOutput(final_state=carry.state, actions=actions, is_controlled=controlled)

@@ -1,0 +1,162 @@
+"""Per-object, per-step events and the paper's aggregate rates.
+
+Events (Waymax semantics): `pairwise_overlap` (exact oriented-box overlap per
+step), `offroad` (a box corner on the outer side of the nearest road edge).
+Aggregates (shared/DESIGN.md "Metric definitions"), counted per scenario so
+that batches and seeds sum exactly:
+
+- collision: an evaluated agent overlaps another valid object at some
+  simulated step; pairs that already overlap in the log at the start step are
+  not counted (WOMD has such pairs). `collided_any` counts them too;
+  `vehicle_collided` counts evaluated vehicles hitting another vehicle (WOMD
+  logs have pedestrian boxes that overlap each other and parked cars).
+- off-road: an evaluated vehicle on the road at the start step is off it at
+  some later step (`became_offroad`); vehicles that start off the road are
+  counted separately (`start_offroad`). Pedestrians and cyclists are not
+  checked: sidewalks are off-road by the road-edge definition.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from pcdiff_jax.sim import geometry
+from pcdiff_jax.sim.datatypes import (Array, ObjectType, RoadgraphPoints, Trajectory,
+                                      is_road_edge)
+
+
+def pairwise_overlap(traj: Trajectory) -> Array:
+  """(..., T, O, O) bool: boxes i and j overlap at step t, both valid, i != j.
+
+  Computed step by step (`lax.map` over T) to keep memory at O^2 per step.
+  """
+  def per_step(fields):
+    x, y, yaw, length, width, valid = fields                  # each (..., O)
+    hit = geometry.pairwise_box_overlap(x, y, yaw, length, width)
+    both = valid[..., :, None] & valid[..., None, :]
+    eye = jnp.eye(x.shape[-1], dtype=bool)
+    return hit & both & ~eye
+  fields = tuple(jnp.moveaxis(a, -1, 0) for a in (
+      traj.x, traj.y, traj.yaw, traj.length, traj.width, traj.valid))
+  out = jax.lax.map(per_step, fields)                          # (T, ..., O, O)
+  return jnp.moveaxis(out, 0, -3)
+
+
+def overlap(traj: Trajectory) -> Array:
+  """(..., O, T) bool: the object overlaps some other valid object at step t."""
+  return jnp.swapaxes(jnp.any(pairwise_overlap(traj), axis=-1), -1, -2)
+
+
+def road_edges(roadgraph: RoadgraphPoints, center_xy: Array, max_points: int):
+  """The `max_points` valid road-edge samples nearest `center_xy` (..., 2).
+
+  Returns xy (..., E, 2), dir (..., E, 2), ids (..., E), valid (..., E), in
+  record order so that polylines stay contiguous.
+  """
+  edge = roadgraph.valid & is_road_edge(roadgraph.types)
+  dist = jnp.linalg.norm(roadgraph.xy - center_xy[..., None, :], axis=-1)
+  dist = jnp.where(edge, dist, jnp.inf)
+  k = min(max_points, roadgraph.num_points)
+  _, idx = jax.lax.top_k(-dist, k)
+  idx = jnp.sort(idx, axis=-1)
+  take = lambda a: jnp.take_along_axis(a, idx, axis=-1)
+  return (jnp.stack([take(roadgraph.x), take(roadgraph.y)], -1),
+          jnp.stack([take(roadgraph.dir_x), take(roadgraph.dir_y)], -1),
+          take(roadgraph.ids), take(edge))
+
+
+def offroad(traj: Trajectory, roadgraph: RoadgraphPoints, center_xy: Array,
+            max_edge_points: int = 4096) -> Array:
+  """(..., O, T) bool: some box corner is off the road (positive signed distance).
+
+  Only the `max_edge_points` road-edge samples nearest `center_xy` (..., 2)
+  (e.g. the SDC at the start step) are searched; invalid steps are False.
+  """
+  edge_xy, edge_dir, edge_ids, edge_valid = road_edges(roadgraph, center_xy, max_edge_points)
+
+  def per_step(fields):
+    x, y, yaw, length, width = fields                         # each (..., O)
+    corners = geometry.box_corners(x, y, yaw, length, width)  # (..., O, 4, 2)
+    flat = corners.reshape(corners.shape[:-3] + (-1, 2))      # (..., O*4, 2)
+    sd = geometry.signed_distance_to_road_edges(flat, edge_xy, edge_dir, edge_ids, edge_valid)
+    return jnp.any(sd.reshape(corners.shape[:-1]) > 0.0, axis=-1)
+  fields = tuple(jnp.moveaxis(a, -1, 0) for a in (traj.x, traj.y, traj.yaw, traj.length, traj.width))
+  out = jnp.moveaxis(jax.lax.map(per_step, fields), 0, -1)   # (..., O, T)
+  return out & traj.valid
+
+
+@struct.dataclass
+class EventCounts:
+  """Per-scenario counts (...,) int32; sum over scenarios, then divide."""
+  num_evaluated: Array
+  collided: Array
+  collided_any: Array
+  vehicle_collided: Array      # evaluated vehicles overlapping another vehicle
+  num_vehicles: Array          # evaluated vehicles
+  start_offroad: Array         # ... off the road at the start step
+  became_offroad: Array        # ... on the road at the start, off it later
+  offroad_any: Array           # ... off the road at some simulated step
+
+  def rates(self) -> dict[str, float]:
+    """The paper's rates over everything summed (host-side)."""
+    total = jax.tree_util.tree_map(lambda a: float(jnp.sum(a)), self)
+    on_road = total.num_vehicles - total.start_offroad
+    return {
+        "collision_rate": total.collided / max(total.num_evaluated, 1.0),
+        "collision_any_rate": total.collided_any / max(total.num_evaluated, 1.0),
+        "vehicle_collision_rate": total.vehicle_collided / max(total.num_vehicles, 1.0),
+        "offroad_rate": total.became_offroad / max(on_road, 1.0),
+        "offroad_any_rate": total.offroad_any / max(total.num_vehicles, 1.0),
+        "start_offroad_fraction": total.start_offroad / max(total.num_vehicles, 1.0),
+        "num_evaluated": total.num_evaluated,
+        "num_vehicles": total.num_vehicles,
+    }
+
+
+def event_counts(sim: Trajectory, log: Trajectory, roadgraph: RoadgraphPoints,
+                 object_types: Array, evaluated: Array, start_step: int,
+                 max_edge_points: int = 4096) -> EventCounts:
+  """Collision and off-road counts of a rollout.
+
+  Args:
+    sim, log: (..., O, T) simulated and logged trajectories.
+    roadgraph: (..., P). object_types: (..., O).
+    evaluated: (..., O) bool, the agents to score (valid at `start_step`).
+    start_step: the step simulation starts from (10 for WOMD); only steps
+      after it count as events.
+  """
+  num_t = sim.num_timesteps
+  after = jnp.arange(num_t) > start_step                       # (T,)
+  evaluated = evaluated & sim.valid[..., start_step]
+
+  pairs = pairwise_overlap(sim)                                # (..., T, O, O)
+  log_pairs_at_start = pairwise_overlap(jax.tree_util.tree_map(
+      lambda a: a[..., start_step:start_step + 1], log))[..., 0, :, :]
+  later = pairs & after[:, None, None]
+  collided_any = jnp.any(later, axis=(-3, -1))                 # (..., O)
+  new_pairs = later & ~log_pairs_at_start[..., None, :, :]
+  collided = jnp.any(new_pairs, axis=(-3, -1))
+  is_vehicle = object_types == ObjectType.VEHICLE
+  vehicle_collided = jnp.any(new_pairs & is_vehicle[..., None, None, :], axis=(-3, -1))
+
+  # Search the road edges around the evaluated agents' centroid.
+  start_xy = jnp.stack([sim.x[..., start_step], sim.y[..., start_step]], -1)      # (..., O, 2)
+  center = jnp.sum(jnp.where(evaluated[..., None], start_xy, 0.0), axis=-2) / jnp.maximum(
+      jnp.sum(evaluated, -1, keepdims=True), 1)                                    # (..., 2)
+  off = offroad(sim, roadgraph, center, max_edge_points)      # (..., O, T)
+  vehicle = evaluated & is_vehicle
+  start_off = off[..., start_step]
+  off_later = jnp.any(off & after, axis=-1)
+
+  count = lambda m: jnp.sum(m, axis=-1).astype(jnp.int32)
+  return EventCounts(
+      num_evaluated=count(evaluated),
+      collided=count(collided & evaluated),
+      collided_any=count(collided_any & evaluated),
+      vehicle_collided=count(vehicle_collided & vehicle),
+      num_vehicles=count(vehicle),
+      start_offroad=count(start_off & vehicle),
+      became_offroad=count(off_later & ~start_off & vehicle),
+      offroad_any=count(off_later & vehicle),
+  )
