@@ -193,6 +193,12 @@ class BicycleModel:
     return _trajectory_step(current, x, y, yaw, v * jnp.cos(yaw), v * jnp.sin(yaw),
                             current.valid & action.valid)
 
+  def inverse(self, current: Trajectory, target: Trajectory) -> Action:
+    """Our tracking action towards target's position, as [accel, curvature]."""
+    kinematic = KinematicModel(KinematicsConfig(dt=self.dt)).inverse(current, target)
+    data = to_bicycle_action(kinematic.data, current.speed[..., 0], self.dt, self.max_accel, self.max_curvature)
+    return kinematic.replace(data=jnp.where(kinematic.valid, data, 0.0).astype(jnp.float32))
+
 
 @dataclasses.dataclass(frozen=True)
 class StateDynamics:
