@@ -536,9 +536,10 @@ def state_to_example(state: SimulatorState, scenario_id: str, trajectory: str = 
   def to_feature(key, value):
     kind = feature_kind(key)
     flat = np.asarray(value).reshape(-1)
+    # Lists, not arrays: protobuf copies a list ~10x faster than it iterates an array.
     if kind == "float":
-      return tf.train.Feature(float_list=tf.train.FloatList(value=flat.astype(np.float32)))
-    return tf.train.Feature(int64_list=tf.train.Int64List(value=flat.astype(np.int64)))
+      return tf.train.Feature(float_list=tf.train.FloatList(value=flat.astype(np.float32).tolist()))
+    return tf.train.Feature(int64_list=tf.train.Int64List(value=flat.astype(np.int64).tolist()))
 
   feature = {k: to_feature(k, v) for k, v in feats.items()}
   feature["scenario/id"] = tf.train.Feature(bytes_list=tf.train.BytesList(value=[scenario_id.encode()]))
@@ -556,7 +557,7 @@ def write(path: str, items: Iterable[tuple[SimulatorState, str]], trajectory: st
   count = 0
   with tf.io.TFRecordWriter(tmp) as writer:
     for state, scenario_id in items:
-      writer.write(state_to_example(state, scenario_id, trajectory=trajectory).SerializeToString())
+      writer.write(state_to_example(state, scenario_id, trajectory=trajectory).SerializeToString(deterministic=True))
       count += 1
   os.replace(tmp, path)
   return count
