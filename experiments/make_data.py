@@ -66,7 +66,7 @@ def _generate(args) -> int:
   with tqdm(total=args.num_train + args.num_val, desc="scenes", unit="scene") as bar:
     stats = write_dataset(args.out, args.num_train, args.num_val, args.seed, cfg,
                           shard_size=args.shard_size, workers=args.workers, on_progress=bar.update)
-  summary = {k: stats[k] for k in ("train", "val") if k in stats}
+  summary = {k: {f: v for f, v in stats[k].items() if f != "files"} for k in ("train", "val") if k in stats}
   print(json.dumps(summary, indent=2))
   rate = stats.get("scenes_per_second")
   print(f"wrote {args.out}/stats.json" + (f" ({rate:.1f} scenes/s)" if rate else " (all shards existed)"))

@@ -40,6 +40,7 @@ CAUTION_LUT = np.isin(np.arange(-1, 9), CAUTION_STATES)
 MOVE_WEIGHT = {"through": 0.55, "left": 0.25, "right": 0.2, "lane": 1.0}
 MAX_ROUTE = 6
 LOOKAHEAD = 120.0
+DECIDE_EVERY = 3     # steps between driver decisions (0.3 s reaction time)
 sub_empty = np.zeros(0, int)
 
 
@@ -118,7 +119,11 @@ def build_table(m: maps_lib.Map, num_steps: int) -> LaneTable:
       q = getattr(l, side)
       if q < 0:
         continue
-      s, lat = pl.project(lanes[q].xy, l.xy)
+      # Project every 4th sample and interpolate: the maps between parallel lanes are smooth.
+      k = np.unique(np.append(np.arange(0, len(l.xy), 4), len(l.xy) - 1))
+      s_k, lat_k = pl.project(lanes[q].xy, l.xy[k])
+      idx = np.arange(len(l.xy))
+      s, lat = np.interp(idx, k, s_k), np.interp(idx, k, lat_k)
       ok = (s > 0.5) & (s < length[q] - 0.5) & (np.abs(lat) < 5.0)
       out[offsets[i]:offsets[i] + count[i]] = np.where(ok, s, np.nan)
     return out
@@ -145,7 +150,12 @@ def build_table(m: maps_lib.Map, num_steps: int) -> LaneTable:
   for l in lanes:
     for j in l.successors:
       preds[j] += 1
-  kappa = np.array([np.abs(pl.curvature(l.xy)).max() if len(l.xy) > 2 else 0.0 for l in lanes])
+  # Max |curvature| per lane from heading changes between consecutive samples.
+  heading = np.arctan2(tangent[:, 1], tangent[:, 0])
+  dh = np.abs(np.angle(np.exp(1j * np.diff(heading)))) / np.repeat(length / (count - 1), count)[1:]
+  dh = np.append(dh, 0.0)
+  dh[offsets + count - 1] = 0.0                       # no difference across lane boundaries
+  kappa = np.maximum.reduceat(dh, offsets)
   conf = np.array(_conflicts(lanes), float).reshape(-1, 6)
   rank = np.array([l.rank for l in lanes])
   ca, cb = conf[:, 0].astype(int), conf[:, 1].astype(int)
@@ -209,7 +219,7 @@ class _Sim:
             "v": (float, 0.0), "a": (float, 0.0), "noise": (float, 0.0), "d0": (float, 0.0),
             "lc_len": (float, 1.0), "lc_prog": (float, 1.0), "lc_old": (int, -1), "cooldown": (int, 0),
             "stop_done": (int, -1), "length": (float, 4.5), "width": (float, 1.9), "height": (float, 1.6),
-            "parked": (bool, False)}
+            "parked": (bool, False), "cmd": (float, 0.0), "dead": (bool, False)}
   PARAMS = ("v0f", "v0", "T", "a", "b", "s0", "margin", "alat", "lc_rate", "sigma")
 
   def __init__(self, tab: LaneTable, m: maps_lib.Map, rng: np.random.Generator, max_agents: int):
@@ -220,18 +230,19 @@ class _Sim:
     self.route_start = np.zeros((0, MAX_ROUTE))
     self.p = {k: np.zeros(0) for k in self.PARAMS}
     self.yields: list = []
+    self.n_used = 0
 
   @property
   def N(self) -> int:
     return len(self.s)
 
-  def _grow(self) -> int:
+  def _grow(self, k: int) -> None:
+    """Adds k unused (inactive) slots; spawning fills them in order."""
     for name, (dtype, fill) in self.FIELDS.items():
-      setattr(self, name, np.append(getattr(self, name), np.array([fill], dtype)))
-    self.route = np.concatenate([self.route, np.full((1, MAX_ROUTE), -1)])
-    self.route_start = np.concatenate([self.route_start, np.full((1, MAX_ROUTE), np.inf)])
-    self.p = {k: np.append(x, 1.0) for k, x in self.p.items()}
-    return self.N - 1
+      setattr(self, name, np.concatenate([getattr(self, name), np.full(k, fill, dtype)]))
+    self.route = np.concatenate([self.route, np.full((k, MAX_ROUTE), -1)])
+    self.route_start = np.concatenate([self.route_start, np.full((k, MAX_ROUTE), np.inf)])
+    self.p = {name: np.concatenate([x, np.ones(k)]) for name, x in self.p.items()}
 
   # -- agents -------------------------------------------------------------------------------
 
@@ -255,9 +266,12 @@ class _Sim:
     self.s[i] = s
 
   def spawn(self, lane: int, s: float, v: float, kind: int) -> int:
-    if self.N >= self.capacity:
+    if self.n_used >= self.capacity:
       return -1
-    i = self._grow()
+    if self.n_used == self.N:
+      self._grow(min(16, self.capacity - self.N))
+    i = self.n_used
+    self.n_used += 1
     rng, p = self.rng, self.p
     self.active[i] = True
     self.kind[i] = kind
@@ -344,8 +358,15 @@ class _Sim:
   # -- one step -----------------------------------------------------------------------------
 
   def step(self, t: int, record_step: int) -> None:
+    """Drivers decide every DECIDE_EVERY steps (a reaction time) and hold that command;
+    the kinematics integrate every step."""
     if self.N == 0:
       return
+    if t % DECIDE_EVERY == 0:
+      self._decide(t, record_step)
+    self._integrate()
+
+  def _decide(self, t: int, record_step: int) -> None:
     tab, N, p, v = self.tab, self.N, self.p, self.v
     act = self.active
     lane, s_lane = self.locate()
@@ -415,9 +436,15 @@ class _Sim:
       self._right_of_way(t, record_step, sub, D[sub], lane[sub], half[sub], stop_gap[sub], v0[sub], yield_gap)
       yield_gap = self._clear_of_crosswalks(D, half, yield_gap)
 
-    # Longitudinal control: IDM over leader / stop line / yield point, then jerk limits and noise.
+    # Longitudinal command: IDM over leader / stop line / yield point.
     acc = _idm(v, v0, np.where(has_lead, gap_lead, np.inf), v - v[lead], p)
-    acc = np.minimum(acc, _idm(v, v0, np.minimum(stop_gap, yield_gap) - 0.3, v, p))
+    self.cmd = np.minimum(acc, _idm(v, v0, np.minimum(stop_gap, yield_gap) - 0.3, v, p))
+    self.dead = dead
+
+  def _integrate(self) -> None:
+    """Jerk-limited tracking of the command with correlated noise, then the kinematics."""
+    N, p, v, act = self.N, self.p, self.v, self.active
+    acc = self.cmd
     self.noise = self.noise * (1 - DT / 1.5) + p["sigma"] * np.sqrt(2 * DT / 1.5) * self.rng.standard_normal(N)
     acc = np.clip(acc + np.where(v > 1.0, self.noise, 0.0), -8.0, p["a"] * 1.2)
     jerk = np.where(acc < self.a - 2.0, 25.0, 8.0)
@@ -431,7 +458,7 @@ class _Sim:
     self.cooldown = np.maximum(self.cooldown - 1, 0)
 
     # Leaving the map at the end of the route.
-    done = act & ~dead & (self.s > self.route_len - 0.3)
+    done = act & ~self.dead & (self.s > self.route_len - 0.3)
     self.active = act & ~done
 
   def _right_of_way(self, t, record_step, sub, D, lane, half, stop_gap, v0, out) -> None:
@@ -557,21 +584,10 @@ class _Sim:
       self.cooldown[i] = 50
     return bool((choice >= 0).any())
 
-  def position(self, idx=None):
-    """Centre xy, yaw and velocity of agents (all, or `idx`)."""
+  def position(self, idx):
+    """Centre xy, yaw and velocity of agents `idx`."""
     lane, s_lane = self.locate()
-    if idx is not None:
-      lane, s_lane = lane[idx], s_lane[idx]
-    g0, w = _interp_index(self.tab, lane, s_lane)
-    base = _at(self.tab.xy, g0, w)
-    tan = _at(self.tab.tangent, g0, w)
-    nrm = np.stack([-tan[:, 1], tan[:, 0]], -1)
-    d = self.d_now() if idx is None else self.d_now()[idx]
-    slope = self.dd_ds() if idx is None else self.dd_ds()[idx]
-    yaw = np.arctan2(tan[:, 1], tan[:, 0]) + np.arctan(slope)
-    speed = self.v if idx is None else self.v[idx]
-    vel = speed[:, None] * np.stack([np.cos(yaw), np.sin(yaw)], -1)
-    return base + d[:, None] * nrm, yaw, vel
+    return _poses(self.tab, lane[idx], s_lane[idx], self.d_now()[idx], self.dd_ds()[idx], self.v[idx])
 
 
 def _place_initial(sim: _Sim, m: maps_lib.Map, rng: np.random.Generator, budget: int) -> None:
@@ -589,7 +605,7 @@ def _place_initial(sim: _Sim, m: maps_lib.Map, rng: np.random.Generator, budget:
       continue
     if lane.user == "parked":  # parked cars: static for the whole log, like many WOMD vehicles
       s, occupancy = rng.uniform(0, 20), rng.uniform(0.2, 0.9)
-      while s < tab.length[li] - 6.0 and sim.N < budget:
+      while s < tab.length[li] - 6.0 and sim.n_used < budget:
         if rng.uniform() < occupancy:
           s += 2.75
           i = sim.spawn(li, s, 0.0, VEHICLE)
@@ -602,7 +618,7 @@ def _place_initial(sim: _Sim, m: maps_lib.Map, rng: np.random.Generator, budget:
     gap_scale = mean_gap * (3.0 if lane.user == "bike" else 1.0)
     s = rng.exponential(gap_scale)
     placed = []
-    while s < tab.length[li] - 8.0 and sim.N < budget:
+    while s < tab.length[li] - 8.0 and sim.n_used < budget:
       kind = CYCLIST if lane.user == "bike" else VEHICLE
       if kind == VEHICLE and lane.right < 0 and lane.kind == 2 and rng.uniform() < 0.03:
         kind = CYCLIST
@@ -630,12 +646,17 @@ def _spawn_entries(sim: _Sim, m: maps_lib.Map, rng: np.random.Generator) -> None
   if not fire.any():
     return
   lane, s_lane = sim.locate()
-  occ_l, occ_s, _ = sim.occupancy(lane, s_lane)
+  occ_l, occ_s, owner = sim.occupancy(lane, s_lane)
   for li in entries[fire]:
     if ((occ_l == li) & (occ_s < 20.0)).any():
       continue
     kind = {0: VEHICLE, 1: CYCLIST, 2: PEDESTRIAN}[int(tab.user[li])]
     v = tab.v_limit[li] * rng.uniform(0.7, 0.95) if kind == VEHICLE else (5.0 if kind == CYCLIST else 1.3)
+    on_lane = occ_l == li
+    if on_lane.any():  # enter no faster than can comfortably brake behind the one ahead
+      j = np.argmin(np.where(on_lane, occ_s, np.inf))
+      gap = max(occ_s[j] - 0.5 * sim.length[owner[j]] - 6.0, 0.0)
+      v = min(v, np.sqrt(sim.v[owner[j]] ** 2 + 2 * 2.0 * gap))
     sim.spawn(int(li), 0.0, v, kind)
 
 
@@ -646,22 +667,35 @@ def simulate(m: maps_lib.Map, rng: np.random.Generator, num_steps: int = 91, war
   sim = _Sim(tab, m, rng, max_agents)
   _place_initial(sim, m, rng, budget=int(max_agents * 0.8))
   N = max_agents
-  xy = np.zeros((N, num_steps, 2))
-  yaw = np.zeros((N, num_steps))
-  vel = np.zeros((N, num_steps, 2))
+  rec = {k: np.zeros((N, num_steps)) for k in ("s", "d", "slope", "v")}
   active = np.zeros((N, num_steps), bool)
-  lanes = np.full((N, num_steps), -1)
+  lanes = np.zeros((N, num_steps), int)
   with np.errstate(invalid="ignore"):  # inactive slots hold inf positions, masked out
     for t in range(warmup + num_steps):
       r = t - warmup
       if r >= 0 and sim.N:
         n = sim.N
-        xy[:n, r], yaw[:n, r], vel[:n, r] = sim.position()
+        lanes[:n, r], rec["s"][:n, r] = sim.locate()
+        rec["d"][:n, r], rec["slope"][:n, r], rec["v"][:n, r] = sim.d_now(), sim.dd_ds(), sim.v
         active[:n, r] = sim.active
-        lanes[:n, r] = sim.locate()[0]
       sim.step(t, r)
       _spawn_entries(sim, m, rng)
+    xy, yaw, vel = _poses(tab, lanes, np.where(active, rec["s"], 0.0), rec["d"], rec["slope"], rec["v"])
   pad = lambda a, fill: np.concatenate([a, np.full(N - sim.N, fill, a.dtype)])
   return Logs(xy=xy, yaw=yaw, vel=vel, active=active, length=pad(sim.length, 1.0),
               width=pad(sim.width, 1.0), height=pad(sim.height, 1.0), obj_type=pad(sim.kind, VEHICLE),
-              yields=sim.yields, lane=lanes)
+              yields=sim.yields, lane=np.where(active, lanes, -1))
+
+
+def _poses(tab: LaneTable, lane, s, d, slope, speed):
+  """Lane coordinates (any shape) -> centre xy, yaw, velocity: the lane point, offset by d
+  along its normal, heading the lane tangent turned by atan(dd/ds)."""
+  shape = lane.shape
+  g0, w = _interp_index(tab, lane.reshape(-1), s.reshape(-1))
+  base = _at(tab.xy, g0, w)
+  tan = _at(tab.tangent, g0, w)
+  nrm = np.stack([-tan[:, 1], tan[:, 0]], -1)
+  yaw = np.arctan2(tan[:, 1], tan[:, 0]) + np.arctan(slope.reshape(-1))
+  vel = speed.reshape(-1)[:, None] * np.stack([np.cos(yaw), np.sin(yaw)], -1)
+  xy = base + d.reshape(-1)[:, None] * nrm
+  return xy.reshape(shape + (2,)), yaw.reshape(shape), vel.reshape(shape + (2,))

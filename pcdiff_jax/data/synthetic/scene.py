@@ -24,7 +24,7 @@ DEFAULT_FAMILY_WEIGHTS = (("straight", 0.12), ("curved", 0.13), ("intersection",
 @dataclasses.dataclass(frozen=True)
 class SyntheticConfig:
   num_steps: int = womd.NUM_PAST + 1 + 80      # 10 past, current, 80 future at 10 Hz
-  warmup_steps: int = 20                       # simulated before the log starts
+  warmup_steps: int = 12                       # simulated before the log starts
   max_objects: int = 128
   max_rg_points: int = 20000                   # roadgraph samples, padded to this size
   max_traffic_lights: int = 16
