@@ -6,7 +6,7 @@ WOMD ?= ../shared/data/womd/motion_data_one_example.tfrecord
 DEMO_OUT ?= runs/demo
 PYTEST_WORKERS ?= 2
 
-.PHONY: install demo test bench clean
+.PHONY: install demo test bench data clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -21,6 +21,9 @@ demo: install
 
 test: install
 	$(PY) -m pytest -q -n $(PYTEST_WORKERS)
+
+data: install   # the built-in dataset (docs/DATA.md): 2000 train + 200 val scenes in data/synth
+	$(PY) -m experiments.make_data --out data/synth --num-train 2000 --num-val 200 --seed 0
 
 bench: install
 	$(PY) -m experiments.bench --scenarios $(WOMD)
