@@ -41,18 +41,6 @@ def offset(poly: np.ndarray, lateral: float) -> np.ndarray:
   return resample(poly + lateral * normals(poly))
 
 
-def headings(poly: np.ndarray) -> np.ndarray:
-  t = tangents(poly)
-  return np.arctan2(t[:, 1], t[:, 0])
-
-
-def curvature(poly: np.ndarray) -> np.ndarray:
-  """(n,) signed curvature (1/m, positive turning left)."""
-  h = np.unwrap(headings(poly))
-  s = arclength(poly)
-  return np.gradient(h, s) if s[-1] > 0 else np.zeros(len(poly))
-
-
 def directions(poly: np.ndarray) -> np.ndarray:
   """WOMD `dir`: unit vector to the next sample; zero at the last point."""
   d = np.diff(poly, axis=0)

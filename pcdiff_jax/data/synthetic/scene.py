@@ -118,8 +118,8 @@ def _pad(a: np.ndarray, size: int, value) -> np.ndarray:
   return out
 
 
-def assemble(m: maps_lib.Map, logs: _traffic.Logs, tab: Optional[_traffic.LaneTable],
-             rng: np.random.Generator, cfg: SyntheticConfig, light_states: dict) -> Optional[dict]:
+def assemble(m: maps_lib.Map, logs: _traffic.Logs, rng: np.random.Generator,
+             cfg: SyntheticConfig) -> Optional[dict]:
   """Simulated logs -> the nested numpy dict `womd.numpy_to_state` takes, or None if unusable."""
   current = womd.NUM_PAST
   sdc = _sdc_choice(logs, m.focus, rng, current)
@@ -212,7 +212,7 @@ def assemble(m: maps_lib.Map, logs: _traffic.Logs, tab: Optional[_traffic.LaneTa
   for k, li in enumerate(controlled):
     stop = _rotate(m.lanes[li].xy[:1], angle)[0] + shift
     lights["x"][k], lights["y"][k], lights["z"][k] = stop[0], stop[1], ground
-    lights["state"][k] = light_states[m.lanes[li].signal][warm:warm + T]
+    lights["state"][k] = m.light_states[m.lanes[li].signal][warm:warm + T]
     lights["lane_ids"][k] = lane_ids[li]
     lights["valid"][k] = True
   return {"trajectory": trajectory, "metadata": metadata, "roadgraph": roadgraph, "lights": lights,
@@ -239,7 +239,7 @@ def generate_scene(seed: int, index: int, cfg: SyntheticConfig = SyntheticConfig
     family = _family(rng, cfg)
     m = maps_lib.build(family, rng, cfg.warmup_steps + cfg.num_steps)
     logs = _traffic.simulate(m, rng, cfg.num_steps, cfg.warmup_steps, cfg.max_objects)
-    arrays = assemble(m, logs, None, rng, cfg, m.light_states)
+    arrays = assemble(m, logs, rng, cfg)
     if arrays is None:
       continue
     if best is None or arrays["overlaps"] < best[1]["overlaps"]:
