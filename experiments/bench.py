@@ -54,9 +54,9 @@ def bench_rollout(path: str, batch_sizes: list[int], repeats: int) -> list[dict]
     batch = jax.tree_util.tree_map(lambda a: np.repeat(np.asarray(a)[None], b, 0), state)
     rngs = jax.random.split(jax.random.PRNGKey(0), b)
     t0 = time.perf_counter()
-    final = jax.block_until_ready(run(batch, rngs))
+    final = jax.block_until_ready(run(batch, rngs, None))
     compile_s = time.perf_counter() - t0
-    times = _time(lambda: run(batch, rngs), repeats)
+    times = _time(lambda: run(batch, rngs, None), repeats)
     jax.block_until_ready(score(final))
     score_times = _time(lambda: score(final), max(1, repeats // 2))
     rows.append({

@@ -19,7 +19,11 @@ def parse_args(argv=None) -> argparse.Namespace:
                               formatter_class=argparse.RawDescriptionHelpFormatter)
   p.add_argument("--scenarios", required=True, nargs="+",
                  help="TFRecord file(s) or glob(s) in the WOMD motion tf.Example schema")
-  p.add_argument("--method", default="cv", choices=sorted(evaluation.METHODS))
+  p.add_argument("--method", default="cv", choices=sorted(evaluation.METHODS) + list(evaluation.LEARNED))
+  p.add_argument("--checkpoint", default=None,
+                 help="training workdir of the learned policy (pcdiff, pcdiff-noprior)")
+  p.add_argument("--ddim-steps", type=int, default=5)
+  p.add_argument("--replan-every", type=int, default=1, help="steps between plans (1 = 10 Hz)")
   p.add_argument("--out", required=True, help="output folder")
   p.add_argument("--num-steps", type=int, default=80)
   p.add_argument("--max-agents", type=int, default=64, help="reactive agents nearest the SDC")
@@ -27,7 +31,9 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--gifs", type=int, default=1, help="how many scenarios to render as GIF")
   p.add_argument("--seed", type=int, default=0)
   args = p.parse_args(argv)
-  for name in ("num_steps", "max_agents", "batch_size"):
+  if args.method in evaluation.LEARNED and not args.checkpoint:
+    p.error(f"--method {args.method} needs --checkpoint WORKDIR")
+  for name in ("num_steps", "max_agents", "batch_size", "ddim_steps", "replan_every"):
     if getattr(args, name) < 1:
       p.error(f"--{name.replace('_', '-')} must be >= 1")
   if args.num_steps > 80:
@@ -40,11 +46,13 @@ def parse_args(argv=None) -> argparse.Namespace:
 def main(argv=None) -> int:
   args = parse_args(argv)
   logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-  cfg = evaluation.EvalConfig(method=args.method, num_steps=args.num_steps, batch_size=args.batch_size,
+  cfg = evaluation.EvalConfig(method=args.method, checkpoint=args.checkpoint, ddim_steps=args.ddim_steps,
+                              replan_every=args.replan_every,
+                              num_steps=args.num_steps, batch_size=args.batch_size,
                               gifs=args.gifs, seed=args.seed,
                               metrics=MetricsConfig(max_reactive_agents=args.max_agents))
   try:
-    summary = evaluation.evaluate(args.scenarios, args.out, cfg)
+    evaluation.evaluate(args.scenarios, args.out, cfg)
   except (FileNotFoundError, ValueError, RuntimeError) as err:
     print(f"error: {err}", file=sys.stderr)
     return 2

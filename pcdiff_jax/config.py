@@ -68,6 +68,71 @@ class EncoderConfig:
   num_modes: int = 6
   horizon: int = 80                # steps at 10 Hz
   bezier_degree: int = 7
+  proposal_scale: float = 10.0     # m, output scale of the control points
+
+
+@dataclasses.dataclass(frozen=True)
+class DenoiserConfig:
+  """The joint Transformer denoiser (`pcdiff_jax.model.denoiser`).
+
+  `use_prior` False is the context-only ablation (no proposal tokens).
+  `latent_scale` divides latents at the input (and multiplies the output):
+  PCA coordinates of standardised actions are a few units.
+  """
+  d_model: int = 128
+  num_heads: int = 8
+  num_layers: int = 4
+  dropout: float = 0.3
+  use_prior: bool = True
+  latent_scale: float = 4.0
+  radius: float = 100.0            # m, distance scale of the relative pose
+  compute_dtype: str = "float32"   # or "bfloat16" (matmuls; parameters stay float32)
+
+
+@dataclasses.dataclass(frozen=True)
+class DiffusionConfig:
+  """Latent, schedule, sampler and stage-2 loss (`model.latent`, `model.diffusion`).
+
+  Without the prior (`denoiser.use_prior` False) sampling starts from N(0, I)
+  and the noise is unscaled (sigma = 1).
+  """
+  latent_dim: int = 32
+  num_steps: int = 100
+  beta_min: float = 1e-4
+  beta_max: float = 5e-2
+  eps_sigma: float = 0.3           # added to the proposal spread (OptTrajDiff's regulariser)
+  ddim_steps: int = 5
+  eta: float = 0.0
+  diffusion_loss_weight: float = 1.0
+  state_loss_weight: float = 0.5
+  pca_fit_scenes: int = 500        # training scenes whose logs and proposals fit the PCA
+  denoiser: DenoiserConfig = DenoiserConfig()
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+  """One training stage (`pcdiff_jax.training.trainer`).
+
+  AdamW with a linear warm-up to `learning_rate` over `warmup_steps`, then a
+  cosine decay to `final_lr_fraction` x it at `total_steps`; gradients are
+  clipped to a global norm of `grad_clip`. Every `*_every` counts optimizer
+  steps. Examples are the scenes at the replanning steps `current_steps`.
+  """
+  batch_size: int = 16
+  learning_rate: float = 1e-3
+  final_lr_fraction: float = 0.05
+  weight_decay: float = 1e-2
+  warmup_steps: int = 200
+  total_steps: int = 20000
+  grad_clip: float = 1.0
+  cls_weight: float = 1.0
+  eval_batch_size: int = 16
+  log_every: int = 20
+  eval_every: int = 1000
+  checkpoint_every: int = 200
+  keep_checkpoints: int = 2
+  seed: int = 0
+  current_steps: tuple[int, ...] = (10,)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,6 +141,9 @@ class Config:
   metrics: MetricsConfig = MetricsConfig()
   features: FeaturesConfig = FeaturesConfig()
   encoder: EncoderConfig = EncoderConfig()
+  encoder_train: TrainConfig = TrainConfig()
+  diffusion: DiffusionConfig = DiffusionConfig()
+  diffusion_train: TrainConfig = TrainConfig(learning_rate=5e-4, weight_decay=1e-3)
 
 
 PRESETS: dict[str, Config] = {
@@ -84,12 +152,27 @@ PRESETS: dict[str, Config] = {
         features=FeaturesConfig(max_agents=8, history_steps=11, max_polylines=32,
                                 points_per_polyline=8, segment_length=20.0),
         encoder=EncoderConfig(d_model=32, num_heads=4, num_layers=2, agent_blocks=1,
-                              num_neighbors=16, dropout=0.0, bezier_degree=5)),
+                              num_neighbors=16, dropout=0.0, bezier_degree=5),
+        encoder_train=TrainConfig(batch_size=2, warmup_steps=2, total_steps=6, eval_batch_size=2,
+                                  log_every=1, eval_every=3, checkpoint_every=2),
+        diffusion=DiffusionConfig(latent_dim=8, pca_fit_scenes=8, denoiser=DenoiserConfig(
+            d_model=32, num_heads=4, num_layers=1, dropout=0.0)),
+        diffusion_train=TrainConfig(batch_size=2, learning_rate=5e-4, weight_decay=1e-3,
+                                    warmup_steps=2, total_steps=6, eval_batch_size=2,
+                                    log_every=1, eval_every=3, checkpoint_every=2)),
     "cpu": Config(
         features=FeaturesConfig(max_agents=64, history_steps=11, max_polylines=256,
                                 points_per_polyline=10, segment_length=20.0),
         encoder=EncoderConfig(d_model=64, num_heads=4, num_layers=2, agent_blocks=2,
-                              num_neighbors=32, dropout=0.1, bezier_degree=7)),
+                              num_neighbors=32, dropout=0.1, bezier_degree=7),
+        encoder_train=TrainConfig(batch_size=8, learning_rate=2e-3, warmup_steps=100,
+                                  total_steps=1500, eval_every=500, checkpoint_every=100,
+                                  current_steps=(10, 30)),
+        diffusion=DiffusionConfig(denoiser=DenoiserConfig(d_model=64, num_heads=4, num_layers=2,
+                                                          dropout=0.1)),
+        diffusion_train=TrainConfig(batch_size=8, learning_rate=5e-4, weight_decay=1e-3,
+                                    warmup_steps=100, total_steps=1500, eval_every=500,
+                                    checkpoint_every=100)),
     "paper": Config(
         features=FeaturesConfig(max_agents=64, history_steps=11, max_polylines=256,
                                 points_per_polyline=10, segment_length=20.0),
@@ -106,6 +189,26 @@ def get_config(name: str) -> Config:
 
 def to_dict(config: Any) -> dict:
   return dataclasses.asdict(config)
+
+
+def _build(cls, value):
+  if dataclasses.is_dataclass(cls):
+    known = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = set(value) - set(known)
+    if unknown:
+      raise ValueError(f"unknown {cls.__name__} fields {sorted(unknown)}")
+    kwargs = {}
+    for name, v in value.items():
+      default = getattr(cls(), name)
+      kwargs[name] = (_build(type(default), v) if dataclasses.is_dataclass(default)
+                      else tuple(v) if isinstance(default, tuple) else v)
+    return cls(**kwargs)
+  return value
+
+
+def from_dict(value: dict) -> Config:
+  """Inverse of `to_dict` (e.g. the config saved with a checkpoint)."""
+  return _build(Config, value)
 
 
 def to_json(config: Any) -> str:

@@ -12,7 +12,7 @@ import json
 import logging
 import os
 import time
-from typing import Callable, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -34,9 +34,19 @@ METHODS: dict[str, Callable[[int], Actor]] = {
 }
 
 
+LEARNED = ("pcdiff", "pcdiff-noprior")
+
+
 @dataclasses.dataclass(frozen=True)
 class EvalConfig:
+  """method: a baseline of METHODS or a learned policy of LEARNED (which needs
+  `checkpoint`, the training workdir). ddim_steps / eta / replan_every: the
+  learned policy's sampler and replanning interval."""
   method: str = "cv"
+  checkpoint: Optional[str] = None
+  ddim_steps: int = 5
+  eta: float = 0.0
+  replan_every: int = 1
   num_steps: int = 80
   init_steps: int = env.WOMD_INIT_STEPS
   batch_size: int = 1
@@ -45,11 +55,31 @@ class EvalConfig:
   metrics: MetricsConfig = MetricsConfig()
 
 
+def make_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
+  """(actor, params) of `cfg.method`; learned policies load `cfg.checkpoint`."""
+  if cfg.method in METHODS:
+    return METHODS[cfg.method](cfg.metrics.max_reactive_agents), None
+  if cfg.method not in LEARNED:
+    raise ValueError(f"unknown method {cfg.method!r}; choose one of {sorted(METHODS) + list(LEARNED)}")
+  if not cfg.checkpoint:
+    raise ValueError(f"--method {cfg.method} needs --checkpoint (a training workdir)")
+  from pcdiff_jax import policy
+  from pcdiff_jax.training import diffusion_stage
+  use_prior = cfg.method == "pcdiff"
+  models, model_cfg = diffusion_stage.load(cfg.checkpoint, use_prior=use_prior)
+  pcfg = policy.PolicyConfig(ddim_steps=cfg.ddim_steps, eta=cfg.eta, prior_init=use_prior,
+                             replan_every=cfg.replan_every)
+  return policy.actor(model_cfg, pcfg), models
+
+
 def make_rollout_fn(actor: Actor, cfg: EvalConfig):
-  """jit(vmap) of reset -> closed-loop rollout, per scenario: (B,) -> final states."""
-  def one(state, rng):
-    return env.rollout(env.reset(state, cfg.init_steps), actor, cfg.num_steps, rng).final_state
-  return jax.jit(jax.vmap(one))
+  """jit(vmap) of reset -> closed-loop rollout, per scenario:
+  (states (B,), rngs (B,), params) -> final states. The params (model weights)
+  are an argument, not a constant baked into the program."""
+  def one(state, rng, params):
+    return env.rollout(env.reset(state, cfg.init_steps), actor, cfg.num_steps, rng,
+                       params=params).final_state
+  return jax.jit(jax.vmap(one, in_axes=(0, 0, None)))
 
 
 def make_score_fn(cfg: EvalConfig):
@@ -94,11 +124,9 @@ def _markdown(summary: dict) -> str:
 def evaluate(scenarios: Sequence[str] | str, out_dir: str, cfg: EvalConfig,
              progress: bool = True) -> dict:
   """Runs `cfg.method` over every scenario; returns and writes the summary."""
-  if cfg.method not in METHODS:
-    raise ValueError(f"unknown method {cfg.method!r}; choose one of {sorted(METHODS)}")
   files = womd.expand_paths(scenarios)  # fail early, naming the missing path
+  actor, params = make_actor(cfg)
   os.makedirs(out_dir, exist_ok=True)
-  actor = METHODS[cfg.method](cfg.metrics.max_reactive_agents)
   run = make_rollout_fn(actor, cfg)
   score = make_score_fn(cfg)
   per_scenario_path = os.path.join(out_dir, "scenarios.jsonl")
@@ -120,7 +148,7 @@ def evaluate(scenarios: Sequence[str] | str, out_dir: str, cfg: EvalConfig,
       rngs = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(cfg.seed), batch_index), cfg.batch_size)
       try:
         t0 = time.perf_counter()
-        final = jax.block_until_ready(run(_pad_batch(state, cfg.batch_size), rngs))
+        final = jax.block_until_ready(run(_pad_batch(state, cfg.batch_size), rngs, params))
         elapsed = time.perf_counter() - t0
         counts = score(final)
       except Exception as err:  # a bad scenario must not end a long job
@@ -148,7 +176,7 @@ def evaluate(scenarios: Sequence[str] | str, out_dir: str, cfg: EvalConfig,
     raise RuntimeError(f"no scenario could be evaluated; skipped: {skipped}")
   if not step_ms:  # a single batch: time a second, warm call
     t0 = time.perf_counter()
-    jax.block_until_ready(run(_pad_batch(state, cfg.batch_size), rngs))
+    jax.block_until_ready(run(_pad_batch(state, cfg.batch_size), rngs, params))
     step_ms.append(1000 * (time.perf_counter() - t0) / cfg.num_steps)
   summary = {
       "method": cfg.method,

@@ -269,6 +269,7 @@ class ProposalHead(nn.Module):
   d_model: int
   num_modes: int
   degree: int
+  scale: float = 1.0
 
   @nn.compact
   def __call__(self, h: Array) -> tuple[Array, Array]:
@@ -278,7 +279,10 @@ class ProposalHead(nn.Module):
     score = nn.Dense(d)(modes)
     logits = nn.Dense(1)(nn.relu(nn.LayerNorm()(score)))[..., 0]      # (A, K)
     reg = nn.relu(nn.LayerNorm()(nn.Dense(d)(modes)))
-    free = nn.Dense(2 * self.degree)(reg).reshape(h.shape[:-1] + (k, self.degree, 2))
+    # The scale puts the initial control points at tens of metres, the size of
+    # the targets, instead of ~1 m (a long first phase of training otherwise).
+    free = self.scale * nn.Dense(2 * self.degree)(reg)
+    free = free.reshape(h.shape[:-1] + (k, self.degree, 2))
     origin = jnp.zeros(free.shape[:-2] + (1, 2), free.dtype)
     return logits, jnp.concatenate([origin, free], axis=-2)           # (A, K, n+1, 2)
 
@@ -317,7 +321,8 @@ class SceneEncoder(nn.Module):
     num_agents = av.shape[0]
     agent_tokens, map_tokens = h[:num_agents], h[num_agents:]
 
-    logits, ctrl = ProposalHead(d, cfg.num_modes, cfg.bezier_degree, name="head")(agent_tokens)
+    logits, ctrl = ProposalHead(d, cfg.num_modes, cfg.bezier_degree, cfg.proposal_scale,
+                                 name="head")(agent_tokens)
     basis, deriv = bezier_basis(cfg.bezier_degree, cfg.horizon)
     ctrl = jnp.where(av[:, None, None, None], ctrl, 0.0)              # padded agents stand still
     traj = jnp.einsum("ts,aksc->aktc", basis, ctrl)                  # (A, K, T, 2)

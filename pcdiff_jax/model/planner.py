@@ -1,0 +1,147 @@
+"""Encoder -> proposal prior -> DDIM -> decoded joint plans, as pure functions.
+
+Used by stage-2 training (conditioning), its validation and the closed-loop
+policy. Everything takes a batch of scenes (B, ...) and is jit-able.
+
+  cond = condition(models, feats, cfg)      # frozen encoder + proposal latents
+  y0 = sample(models, cond, cfg, rng, ...)  # (B, A, d) joint latent plan
+  states = decode_states(models, cond, y0)  # (B, A, T, 4) agent frame
+"""
+from __future__ import annotations
+
+from typing import Any, Optional
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from pcdiff_jax.config import Config
+from pcdiff_jax.model import denoiser as denoiser_lib
+from pcdiff_jax.model import diffusion, encoder, latent
+from pcdiff_jax.model import features as features_lib
+from pcdiff_jax.model.denoiser import DenoiserInputs
+from pcdiff_jax.model.features import SceneFeatures
+from pcdiff_jax.model.latent import LatentStats
+from pcdiff_jax.sim import geometry
+from pcdiff_jax.sim.datatypes import Array
+
+_VX = features_lib.AGENT_CHANNELS.index("vel_x")
+_LEN = features_lib.AGENT_CHANNELS.index("length")
+
+
+@struct.dataclass
+class Models:
+  """Everything sampling needs: encoder and denoiser parameters, latent statistics."""
+  encoder: Any
+  denoiser: Any
+  stats: LatentStats
+
+
+@struct.dataclass
+class Conditioning:
+  """Per-scene inputs of the sampler (batch dims `...`).
+
+  inputs: DenoiserInputs; mu, sigma: (..., A, d) prior centre and scale
+  (0 and 1 without the prior); speed: (..., A) signed speed at t (the initial
+  state of every decoded rollout is [0, 0, 0, speed] in the agent frame);
+  proposals: (..., A, K, d) proposal latents; probs: (..., A, K).
+  """
+  inputs: DenoiserInputs
+  mu: Array
+  sigma: Array
+  speed: Array
+  proposals: Array
+  probs: Array
+
+
+def agent_speed(feats: SceneFeatures) -> Array:
+  """(..., A) forward speed at t: the x velocity in the agent's own frame."""
+  return feats.agent_history[..., -1, _VX]
+
+
+def agent_size(feats: SceneFeatures) -> tuple[Array, Array]:
+  """(..., A) length and width at t."""
+  return feats.agent_history[..., -1, _LEN], feats.agent_history[..., -1, _LEN + 1]
+
+
+def proposal_latents(out: encoder.EncoderOutput, speed: Array, stats: LatentStats,
+                     cfg: Config) -> Array:
+  """(..., A, K, d) latents of the K proposals (inverse dynamics, then PCA)."""
+  actions = latent.actions_from_positions(out.trajectories, speed[..., None], cfg.kinematics)
+  return latent.encode(actions, stats)
+
+
+def condition(encoder_params: Any, stats: LatentStats, feats: SceneFeatures, cfg: Config) -> Conditioning:
+  """Frozen encoder and proposal prior for a batch of scenes (no gradient)."""
+  out = jax.lax.stop_gradient(encoder.apply(encoder_params, feats, cfg.encoder))
+  speed = agent_speed(feats)
+  props = proposal_latents(out, speed, stats, cfg)                      # (..., A, K, d)
+  if cfg.diffusion.denoiser.use_prior:
+    mu, sigma = diffusion.prior_from_proposals(props, cfg.diffusion.eps_sigma)
+  else:
+    mu, sigma = diffusion.standard_prior(props.shape[:-2] + props.shape[-1:])
+  inputs = DenoiserInputs(
+      agent_tokens=out.agent_tokens, agent_valid=out.agent_valid,
+      agent_center=feats.agent_center, agent_dir=feats.agent_dir,
+      context_tokens=out.context_tokens, context_valid=out.context_valid,
+      prior_latents=props, prior_probs=out.probs)
+  return Conditioning(inputs=inputs, mu=mu, sigma=sigma, speed=speed, proposals=props,
+                      probs=out.probs)
+
+
+def schedule_of(cfg: Config) -> diffusion.Schedule:
+  d = cfg.diffusion
+  return diffusion.linear_schedule(d.num_steps, d.beta_min, d.beta_max)
+
+
+def sample(denoiser_params: Any, cond: Conditioning, cfg: Config, rng: Array,
+           num_steps: Optional[int] = None, eta: Optional[float] = None,
+           prior_init: bool = True, guide=None, guide_steps=None) -> Array:
+  """DDIM joint plans (B, A, d) for a batch of scenes.
+
+  prior_init False starts from N(0, I) with unit noise scale (the no-prior
+  variant); the denoiser still reads whatever tokens its config uses.
+  """
+  d = cfg.diffusion
+  num_steps = d.ddim_steps if num_steps is None else num_steps
+  eta = d.eta if eta is None else eta
+  mu, sigma = (cond.mu, cond.sigma) if prior_init else diffusion.standard_prior(cond.mu.shape)
+
+  def denoise(y, s):
+    return denoiser_lib.apply(denoiser_params, y, s, cond.inputs, d.denoiser)
+  return diffusion.ddim_sample(denoise, mu, sigma, schedule_of(cfg), rng, num_steps, eta,
+                               guide=guide, guide_steps=guide_steps)
+
+
+def decode_states(stats: LatentStats, cond: Conditioning, y0: Array, cfg: Config) -> Array:
+  """(..., A, d) latents -> (..., A, T, 4) agent-frame states [x, y, psi, v]."""
+  return latent.rollout(y0, cond.speed, stats, cfg.kinematics)
+
+
+def to_scene(states: Array, feats: SceneFeatures) -> tuple[Array, Array]:
+  """Agent-frame states (..., A, T, 4) -> scene-frame xy (..., A, T, 2), yaw (..., A, T)."""
+  return features_lib.agent_to_scene(states[..., :2], states[..., 2], feats)
+
+
+def scene_overlap(states: Array, feats: SceneFeatures) -> Array:
+  """(...,) bool: two valid agents' boxes overlap at some step of the plans (..., A, T, 4)."""
+  xy, yaw = to_scene(states, feats)
+  length, width = agent_size(feats)
+  valid = feats.agent_valid
+
+  def one_scene(xy, yaw, length, width, valid):
+    def per_step(carry, inputs):
+      p, h = inputs                                                    # (A, 2), (A,)
+      hit = geometry.pairwise_box_overlap(p[:, 0], p[:, 1], h, length, width)
+      both = valid[:, None] & valid[None] & ~jnp.eye(valid.shape[0], dtype=bool)
+      return carry | jnp.any(hit & both), None
+    out, _ = jax.lax.scan(per_step, jnp.zeros((), bool),
+                          (jnp.moveaxis(xy, -2, 0), jnp.moveaxis(yaw, -1, 0)))
+    return out
+
+  batch = valid.shape[:-1]
+  fn = one_scene
+  for _ in batch:
+    fn = jax.vmap(fn)
+  return fn(xy, yaw, length, width, valid)
+

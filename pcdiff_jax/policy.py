@@ -1,0 +1,123 @@
+"""The closed-loop policy: encode -> DDIM joint plan -> decode -> first action(s).
+
+Two ways to use it from a Waymax-compatible loop:
+
+  actor = policy.actor(cfg, PolicyConfig(ddim_steps=5))     # Actor contract
+  out = sim.rollout(state, actor, 80, rng, params=models)   # one lax.scan
+
+  action, controlled = policy.step(state, models, cfg, rng)  # one replanning
+
+`models` (`planner.Models`) and `cfg` come from
+`training.diffusion_stage.load(workdir)`. The actor controls the reactive
+agents: the agents the encoder models at the start of the rollout (the SDC
+and up to A - 1 nearest it, valid at that step), minus the SDC, which follows
+its log (a fixed ego policy); every other object follows its log. The
+controlled set is fixed at `init`. Every `replan_every` steps the policy
+encodes the scene at the current step (its simulated history), samples a
+joint plan for all A agents with DDIM and decodes it into T actions
+[a, psi_dot] per agent; in between, it executes the plan's next action.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from pcdiff_jax.config import Config
+from pcdiff_jax.model import features as features_lib
+from pcdiff_jax.model import latent, planner
+from pcdiff_jax.model.planner import Models
+from pcdiff_jax.sim import dynamics
+from pcdiff_jax.sim.actors import Actor, ActorOutput
+from pcdiff_jax.sim.datatypes import Action, Array, SimulatorState
+
+
+@dataclasses.dataclass(frozen=True)
+class PolicyConfig:
+  """ddim_steps, eta: the sampler; prior_init False starts from N(0, I) (the
+  no-prior model); replan_every: steps between plans (1 = 10 Hz)."""
+  ddim_steps: int = 5
+  eta: float = 0.0
+  prior_init: bool = True
+  replan_every: int = 1
+
+
+@struct.dataclass
+class PlanState:
+  """Actor state for one scenario: controlled (O,) fixed set; plan (O, T, 2)
+  actions of the last plan; plan_valid (O,); age () steps since it was made."""
+  controlled: Array
+  plan: Array
+  plan_valid: Array
+  age: Array
+
+
+def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: PolicyConfig,
+                 rng: Array) -> tuple[Array, Array]:
+  """A joint plan for one scene at its current step.
+
+  Returns actions (O, T, 2) per object (zeros where not planned) and which
+  objects got a plan (O,).
+  """
+  feats = features_lib.scene_features(state, cfg.features)
+  batched = jax.tree_util.tree_map(lambda a: a[None], feats)
+  cond = planner.condition(models.encoder, models.stats, batched, cfg)
+  y0 = planner.sample(models.denoiser, cond, cfg, rng, policy.ddim_steps, policy.eta,
+                      prior_init=policy.prior_init)
+  actions = dynamics.clip_action(latent.decode(y0[0], models.stats), cfg.kinematics)  # (A, T, 2)
+  num_objects = state.object_metadata.ids.shape[-1]
+  per_object = features_lib.scatter_to_objects(actions, feats, num_objects)
+  planned = features_lib.scatter_to_objects(feats.agent_valid, feats, num_objects, fill=False)
+  return per_object, planned.astype(bool)
+
+
+def reactive_set(state: SimulatorState, cfg: Config) -> Array:
+  """(O,) the agents the encoder models at this step, minus the SDC."""
+  index, valid = features_lib.select_agents(state, cfg.features.max_agents)
+  num_objects = state.object_metadata.ids.shape[-1]
+  chosen = jnp.zeros((num_objects,), bool).at[index].max(valid)
+  return chosen & ~state.object_metadata.is_sdc
+
+
+def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
+  """The policy as an Actor (params = Models). One scenario per call: vmap
+  the rollout for batches."""
+  if policy.replan_every < 1 or policy.replan_every > cfg.encoder.horizon:
+    raise ValueError(f"replan_every must be in [1, {cfg.encoder.horizon}], got {policy.replan_every}")
+
+  def init(rng, state):
+    del rng
+    num_objects = state.object_metadata.ids.shape[-1]
+    return PlanState(controlled=reactive_set(state, cfg),
+                     plan=jnp.zeros((num_objects, cfg.encoder.horizon, 2), jnp.float32),
+                     plan_valid=jnp.zeros((num_objects,), bool),
+                     age=jnp.asarray(policy.replan_every, jnp.int32))   # plan at the first call
+
+  def select_action(models, state, ps: PlanState, rng):
+    replan = ps.age >= policy.replan_every
+    plan, plan_valid = jax.lax.cond(
+        replan, lambda: plan_actions(models, state, cfg, policy, rng),
+        lambda: (ps.plan, ps.plan_valid))
+    age = jnp.where(replan, 0, ps.age)
+    now = jnp.take(plan, age, axis=1)                                    # (O, 2)
+    alive = state.current_sim_trajectory.valid[..., 0]
+    valid = ps.controlled & plan_valid & alive
+    action = Action(data=jnp.where(valid[:, None], now, 0.0), valid=valid[:, None])
+    new = PlanState(controlled=ps.controlled, plan=plan, plan_valid=plan_valid, age=age + 1)
+    return ActorOutput(actor_state=new, action=action, is_controlled=ps.controlled)
+
+  name = "pcdiff" if policy.prior_init else "pcdiff-noprior"
+  return Actor(select_action=select_action, init=init, name=name)
+
+
+def step(state: SimulatorState, models: Models, cfg: Config, rng: Array,
+         policy: PolicyConfig = PolicyConfig()) -> tuple[Action, Array]:
+  """One replanning for one scenario: the first planned action of the reactive
+  agents (Action (O, 2), valid (O, 1)) and the controlled mask (O,)."""
+  controlled = reactive_set(state, cfg)
+  plan, planned = plan_actions(models, state, cfg, policy, rng)
+  valid = controlled & planned & state.current_sim_trajectory.valid[..., 0]
+  return Action(data=jnp.where(valid[:, None], plan[:, 0], 0.0), valid=valid[:, None]), controlled
+

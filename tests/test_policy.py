@@ -1,0 +1,88 @@
+"""The closed-loop policy: actor contract, one fused scan, no recompiles, replanning."""
+from __future__ import annotations
+
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from conftest import make_scene, stack_states
+from pcdiff_jax import evaluation, policy
+from pcdiff_jax.config import get_config
+from pcdiff_jax.model import denoiser as denoiser_lib
+from pcdiff_jax.model import encoder, planner
+from pcdiff_jax.sim import env
+from pcdiff_jax.training import data as data_lib
+from pcdiff_jax.training import diffusion_stage
+
+CFG = get_config("tiny")
+
+
+@pytest.fixture(scope="module")
+def models():
+  """Untrained tiny models with a latent fitted on make_scene (weights do not matter here)."""
+  state = make_scene(num_steps=91)
+  ex = jax.tree_util.tree_map(lambda a: a[None], data_lib.example_at(state, 10, CFG.features, 80))
+  enc = encoder.init(jax.random.key(0), ex.feats, CFG.encoder)
+  stats = diffusion_stage.fit_latent(enc, CFG, ex, 1, batch_size=1)
+  cond = planner.condition(enc, stats, ex.feats, CFG)
+  one = jax.tree_util.tree_map(lambda a: a[0], cond.inputs)
+  den = denoiser_lib.init(jax.random.key(1), cond.mu[0], jnp.int32(0), one, CFG.diffusion.denoiser)
+  return planner.Models(encoder=enc, denoiser=den, stats=stats)
+
+
+def _scenes(speeds_list):
+  return stack_states([make_scene(num_steps=91, speeds=s) for s in speeds_list])
+
+
+def test_closed_loop_is_one_program_without_recompiles(models):
+  actor = policy.actor(CFG, policy.PolicyConfig(ddim_steps=2))
+  cfg = evaluation.EvalConfig(num_steps=6)
+  run = evaluation.make_rollout_fn(actor, cfg)
+  rngs = jax.random.split(jax.random.key(0), 2)
+  first = run(_scenes([(10.0, 8.0, 0.0, 5.0), (6.0, 7.0, 1.0, 3.0)]), rngs, models)
+  second = run(_scenes([(12.0, 2.0, 0.0, 9.0), (4.0, 4.0, 4.0, 4.0)]), rngs, models)
+  assert run._cache_size() == 1                                    # same padded size: one compile
+  traj = second.sim_trajectory
+  steps = slice(11, 17)
+  assert bool(jnp.all(jnp.isfinite(traj.x[:, :, steps])))
+  # The SDC (object 0) follows its log; the reactive agents are the policy's.
+  np.testing.assert_allclose(np.asarray(traj.x[:, 0, steps]),
+                             np.asarray(second.log_trajectory.x[:, 0, steps]), atol=1e-5)
+  controlled = np.asarray(second.object_metadata.is_controlled)
+  assert not controlled[:, 0].any() and controlled[:, 1:].all()
+  assert not np.allclose(np.asarray(traj.x[:, 1:, steps]), np.asarray(second.log_trajectory.x[:, 1:, steps]))
+  del first
+
+
+def test_replanning_interval_and_single_step(models):
+  state = env.reset(make_scene(num_steps=91))
+  act = policy.actor(CFG, policy.PolicyConfig(ddim_steps=1, replan_every=3))
+  ps = act.init(jax.random.key(0), state)
+  select = jax.jit(act.select_action)
+  ages, plans = [], []
+  for k in range(5):
+    out = select(models, state, ps, jax.random.key(k))
+    ps = out.actor_state
+    ages.append(int(ps.age))
+    plans.append(np.asarray(ps.plan))
+    state = env.step(state, out.action, out.is_controlled)
+  assert ages == [1, 2, 3, 1, 2]
+  np.testing.assert_array_equal(plans[0], plans[2])                # kept between replans
+  assert not np.array_equal(plans[2], plans[3])                    # a new plan at step 3
+  action, controlled = jax.jit(lambda s, r: policy.step(s, models, CFG, r))(state, jax.random.key(9))
+  assert action.data.shape == (4, 2) and action.valid.shape == (4, 1)
+  assert not bool(controlled[0]) and bool(jnp.all(jnp.isfinite(action.data)))
+  with pytest.raises(ValueError, match="replan_every"):
+    policy.actor(CFG, policy.PolicyConfig(replan_every=0))
+
+
+def test_rollout_cli_needs_a_checkpoint_for_learned_methods(tmp_path, womd_path):
+  from experiments import rollout
+  with pytest.raises(SystemExit):
+    rollout.main(["--scenarios", womd_path, "--method", "pcdiff", "--out", str(tmp_path)])
+  assert rollout.main(["--scenarios", womd_path, "--method", "pcdiff", "--checkpoint",
+                       str(tmp_path / "nothing"), "--out", str(tmp_path / "o")]) == 2
+
+
