@@ -19,11 +19,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from pcdiff_jax import baselines
+from pcdiff_jax.baselines import idm
+from pcdiff_jax import metrics as metrics_lib
 from pcdiff_jax.config import MetricsConfig
 from pcdiff_jax.data import womd
-from pcdiff_jax.sim import env, metrics
+from pcdiff_jax.sim import env
 from pcdiff_jax.sim.actors import Actor
-from pcdiff_jax.sim.selection import nearest_to_sdc
 
 log = logging.getLogger(__name__)
 
@@ -31,10 +32,11 @@ METHODS: dict[str, Callable[[int], Actor]] = {
     "log": lambda max_agents: baselines.log_replay(),
     "cv": lambda max_agents: baselines.constant_velocity(baselines.reactive_agents(max_agents)),
     "expert": lambda max_agents: baselines.expert(controlled_fn=baselines.reactive_agents(max_agents)),
+    "idm": lambda max_agents: idm.idm(controlled_fn=baselines.reactive_agents(max_agents)),
 }
 
 
-LEARNED = ("pcdiff", "pcdiff-noprior")
+LEARNED = ("pcdiff", "pcdiff-noprior", "simpl-ar")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,6 +49,8 @@ class EvalConfig:
   ddim_steps: int = 5
   eta: float = 0.0
   replan_every: int = 1
+  num_rollouts: int = 1
+  seeds: int = 1
   num_steps: int = 80
   init_steps: int = env.WOMD_INIT_STEPS
   batch_size: int = 1
@@ -64,7 +68,11 @@ def make_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
   if not cfg.checkpoint:
     raise ValueError(f"--method {cfg.method} needs --checkpoint (a training workdir)")
   from pcdiff_jax import policy
-  from pcdiff_jax.training import diffusion_stage
+  from pcdiff_jax.training import diffusion_stage, encoder_stage
+  if cfg.method == "simpl-ar":
+    from pcdiff_jax.baselines import simpl_ar
+    enc, model_cfg = encoder_stage.load(cfg.checkpoint)
+    return simpl_ar.simpl_ar(model_cfg), enc
   use_prior = cfg.method == "pcdiff"
   models, model_cfg = diffusion_stage.load(cfg.checkpoint, use_prior=use_prior)
   pcfg = policy.PolicyConfig(ddim_steps=cfg.ddim_steps, eta=cfg.eta, prior_init=use_prior,
@@ -83,15 +91,12 @@ def make_rollout_fn(actor: Actor, cfg: EvalConfig):
 
 
 def make_score_fn(cfg: EvalConfig):
-  """jit(vmap) of the event counts of rolled-out states (B,) -> EventCounts (B,)."""
+  """jit(vmap) of the scores of rolled-out states (B,) -> metrics.RolloutScores (B,)."""
   start = cfg.init_steps - 1
 
   def one(final_state):
-    evaluated = nearest_to_sdc(final_state.replace(timestep=jnp.int32(start)),
-                               cfg.metrics.max_reactive_agents)
-    return metrics.event_counts(final_state.sim_trajectory, final_state.log_trajectory,
-                                final_state.roadgraph_points, final_state.object_metadata.object_types,
-                                evaluated, start, cfg.metrics.max_road_edge_points)
+    return metrics_lib.score_rollout(final_state, start, cfg.num_steps,
+                                     cfg.metrics.max_reactive_agents, cfg.metrics.max_road_edge_points)
   return jax.jit(jax.vmap(one))
 
 
@@ -104,86 +109,121 @@ def _pad_batch(state, size: int):
       lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], size - n, axis=0)], 0), state)
 
 
+# Metrics reported as mean and std over seeds, with their Table-I labels.
+HEADLINE = (("collision_rate", "collision (%)", 100.0), ("offroad_rate", "off-road (%)", 100.0),
+            ("realism", "realism (W1)", 1.0), ("min_ade", "minADE (m)", 1.0),
+            ("runtime_ms_per_replan", "runtime / replan (ms)", 1.0))
+
+
 def _markdown(summary: dict) -> str:
+  head = "| method | " + " | ".join(label for _, label, _ in HEADLINE) + " |"
+  cells = []
+  for key, _, scale in HEADLINE:
+    m = summary[key]
+    cells.append(f"{scale * m['mean']:.2f} ± {scale * m['std']:.2f}")
+  lines = [f"# {summary['method']} on {summary['num_scenarios']} scenario(s)", "", head,
+           "|" + "---|" * (len(HEADLINE) + 1), f"| {summary['method']} | " + " | ".join(cells) + " |", ""]
   r = summary["rates"]
-  rows = [
-      ("collision rate (%)", 100 * r["collision_rate"]),
-      ("vehicle-vehicle collision rate (%)", 100 * r["vehicle_collision_rate"]),
-      ("off-road rate (%)", 100 * r["offroad_rate"]),
-      ("vehicles starting off-road (%)", 100 * r["start_offroad_fraction"]),
-      ("runtime per step (ms)", summary["runtime_ms_per_step"]["mean"]),
-  ]
-  lines = [f"# {summary['method']} on {summary['num_scenarios']} scenario(s)", "",
-           "| metric | value |", "|---|---|"]
-  lines += [f"| {name} | {value:.2f} |" for name, value in rows]
-  lines += ["", f"evaluated agents: {int(r['num_evaluated'])}, of them vehicles: {int(r['num_vehicles'])}; "
-            f"skipped scenarios: {len(summary['skipped'])}"]
+  lines += [f"Mean ± std over {summary['seeds']} seed(s), {summary['num_rollouts']} rollout(s) per "
+            f"scenario and seed (minADE: the best of them). Vehicle-vehicle collision rate "
+            f"{100 * r['vehicle_collision_rate']:.2f}%; vehicles starting off-road "
+            f"{100 * r['start_offroad_fraction']:.2f}%. Evaluated agents per seed: "
+            f"{int(r['num_evaluated'])} (vehicles {int(r['num_vehicles'])}); skipped scenarios: "
+            f"{len(summary['skipped'])}. Runtime: one jitted closed-loop call over "
+            f"{summary['runtime_ms_per_replan']['scenarios_per_call']} scenario rollouts, per step, "
+            "compile excluded."]
   return "\n".join(lines) + "\n"
+
+
+def _mean_std(values) -> dict:
+  v = np.asarray(values, np.float64)
+  return {"mean": float(np.mean(v)), "std": float(np.std(v))}
 
 
 def evaluate(scenarios: Sequence[str] | str, out_dir: str, cfg: EvalConfig,
              progress: bool = True) -> dict:
-  """Runs `cfg.method` over every scenario; returns and writes the summary."""
+  """Runs `cfg.method` over every scenario, `cfg.seeds` times with
+  `cfg.num_rollouts` rollouts each; returns and writes the summary."""
   files = womd.expand_paths(scenarios)  # fail early, naming the missing path
   actor, params = make_actor(cfg)
   os.makedirs(out_dir, exist_ok=True)
   run = make_rollout_fn(actor, cfg)
   score = make_score_fn(cfg)
+  n_roll = cfg.num_rollouts
+  call_size = cfg.batch_size * n_roll
   per_scenario_path = os.path.join(out_dir, "scenarios.jsonl")
   skipped: list[dict] = []
-  totals: Optional[metrics.EventCounts] = None
+  per_seed: list[dict] = []
   step_ms: list[float] = []
-  gifs_done, num_done = 0, 0
-  load_errors: list = []
-  batches = womd.iterate(files, batch_size=cfg.batch_size, with_meta=True, on_error="skip",
-                         skipped=load_errors)
-  try:
-    from tqdm import tqdm
-    batches = tqdm(batches, desc=f"rollout {cfg.method}", unit="batch", disable=not progress)
-  except ImportError:  # progress bars are a nicety
-    pass
+  gifs_done, num_done, calls = 0, 0, 0
+  from tqdm.auto import tqdm
   with open(per_scenario_path, "a") as per_scenario:
-    for batch_index, (state, meta) in enumerate(batches):
-      n = state.shape[0]
-      rngs = jax.random.split(jax.random.fold_in(jax.random.PRNGKey(cfg.seed), batch_index), cfg.batch_size)
-      try:
-        t0 = time.perf_counter()
-        final = jax.block_until_ready(run(_pad_batch(state, cfg.batch_size), rngs, params))
-        elapsed = time.perf_counter() - t0
-        counts = score(final)
-      except Exception as err:  # a bad scenario must not end a long job
-        log.warning("skipping batch %s (%s): %s", batch_index, meta.scenario_id, err)
-        skipped += [{"scenario_id": s, "path": p, "record": r, "error": str(err)}
-                    for s, p, r in zip(meta.scenario_id, meta.path, meta.record_index)]
-        continue
-      if batch_index > 0:  # the first call includes compilation
-        step_ms.append(1000 * elapsed / cfg.num_steps)
-      counts = jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], counts)
-      totals = counts if totals is None else jax.tree_util.tree_map(
-          lambda a, b: np.concatenate([a, b]), totals, counts)
-      for i in range(n):
-        row = {"scenario_id": meta.scenario_id[i], "path": meta.path[i], "record": meta.record_index[i]}
-        row.update({k: int(v[i]) for k, v in dataclasses.asdict(counts).items()})
-        per_scenario.write(json.dumps(row) + "\n")
-        per_scenario.flush()
-        if gifs_done < cfg.gifs:
-          _write_gif(final, i, meta.scenario_id[i], out_dir, cfg.init_steps - 1)
-          gifs_done += 1
-      num_done += n
-  skipped += [{"scenario_id": None, "path": e.path, "record": e.index, "error": str(e)}
-              for e in load_errors]
-  if totals is None:
+    for seed in range(cfg.seeds):
+      scores_seed = []
+      load_errors: list = []
+      batches = womd.iterate(files, batch_size=cfg.batch_size, with_meta=True, on_error="skip",
+                             skipped=load_errors)
+      bar = tqdm(batches, desc=f"{cfg.method} seed {seed}", unit="batch", disable=not progress)
+      for batch_index, (state, meta) in enumerate(bar):
+        n = state.shape[0]
+        key = jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(cfg.seed), seed), batch_index)
+        rngs = jax.random.split(key, call_size)
+        try:
+          tiled = jax.tree_util.tree_map(lambda a: jnp.repeat(a, n_roll, axis=0),
+                                         _pad_batch(state, cfg.batch_size))
+          t0 = time.perf_counter()
+          final = jax.block_until_ready(run(tiled, rngs, params))
+          elapsed = time.perf_counter() - t0
+          scores = jax.device_get(score(final))
+        except Exception as err:  # a bad scenario must not end a long job
+          log.warning("skipping batch %s (%s): %s", batch_index, meta.scenario_id, err)
+          if seed == 0:
+            skipped += [{"scenario_id": s, "path": p, "record": r, "error": str(err)}
+                        for s, p, r in zip(meta.scenario_id, meta.path, meta.record_index)]
+          continue
+        if calls > 0:  # the first call includes compilation
+          step_ms.append(1000 * elapsed / cfg.num_steps)
+        calls += 1
+        scores = jax.tree_util.tree_map(lambda a: np.asarray(a).reshape((cfg.batch_size, n_roll) +
+                                                                        a.shape[1:])[:n], scores)
+        scores_seed.append(scores)
+        for i in range(n):
+          one = jax.tree_util.tree_map(lambda a: a[i:i + 1], scores)
+          row = {"scenario_id": meta.scenario_id[i], "path": meta.path[i], "record": meta.record_index[i],
+                 "seed": seed}
+          row.update({k: v for k, v in metrics_lib.aggregate(one).items()
+                      if k in ("collision_rate", "offroad_rate", "min_ade", "num_evaluated")})
+          per_scenario.write(json.dumps(row) + "\n")
+          per_scenario.flush()
+          if gifs_done < cfg.gifs:
+            first = jax.tree_util.tree_map(lambda a: a[i * n_roll:i * n_roll + 1], final)
+            _write_gif(first, 0, meta.scenario_id[i], out_dir, cfg.init_steps - 1)
+            gifs_done += 1
+        if seed == 0:
+          num_done += n
+      if seed == 0:
+        skipped += [{"scenario_id": None, "path": e.path, "record": e.index, "error": str(e)}
+                    for e in load_errors]
+      if scores_seed:
+        stacked = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *scores_seed)
+        per_seed.append(metrics_lib.aggregate(stacked))
+  if not per_seed:
     raise RuntimeError(f"no scenario could be evaluated; skipped: {skipped}")
-  if not step_ms:  # a single batch: time a second, warm call
+  if not step_ms:  # a single call: time a second, warm one
     t0 = time.perf_counter()
-    jax.block_until_ready(run(_pad_batch(state, cfg.batch_size), rngs, params))
+    jax.block_until_ready(run(tiled, rngs, params))
     step_ms.append(1000 * (time.perf_counter() - t0) / cfg.num_steps)
   summary = {
       "method": cfg.method,
       "num_scenarios": num_done,
-      "rates": metrics.EventCounts(**{k: jnp.asarray(v) for k, v in dataclasses.asdict(totals).items()}).rates(),
-      "runtime_ms_per_step": {"mean": float(np.mean(step_ms)), "std": float(np.std(step_ms)),
-                              "batch_size": cfg.batch_size, "note": "compile excluded"},
+      "seeds": len(per_seed),
+      "num_rollouts": n_roll,
+      **{k: _mean_std([m[k] for m in per_seed]) for k, _, _ in HEADLINE[:-1]},
+      "vehicle_collision_rate": _mean_std([m["vehicle_collision_rate"] for m in per_seed]),
+      "runtime_ms_per_replan": {**_mean_std(step_ms), "scenarios_per_call": call_size,
+                                "replan_every": cfg.replan_every, "note": "compile excluded"},
+      "rates": {k: float(np.mean([m[k] for m in per_seed])) for k in per_seed[0]},
+      "per_seed": per_seed,
       "skipped": skipped,
       "config": dataclasses.asdict(cfg),
       "device": str(jax.devices()[0]),

@@ -86,3 +86,15 @@ def test_rollout_cli_needs_a_checkpoint_for_learned_methods(tmp_path, womd_path)
                        str(tmp_path / "nothing"), "--out", str(tmp_path / "o")]) == 2
 
 
+
+
+def test_simpl_ar_and_idm_run_in_the_same_closed_loop(models):
+  from pcdiff_jax.baselines import idm, simpl_ar
+  cfg = evaluation.EvalConfig(num_steps=3)
+  states = _scenes([(10.0, 8.0, 0.0, 5.0)])
+  rngs = jax.random.split(jax.random.key(0), 1)
+  for actor, params in ((simpl_ar.simpl_ar(CFG), models.encoder), (idm.idm(), None)):
+    final = evaluation.make_rollout_fn(actor, cfg)(states, rngs, params)
+    traj = final.sim_trajectory
+    assert bool(jnp.all(jnp.isfinite(traj.x[:, :, 11:14])))
+    assert bool(final.object_metadata.is_controlled[0, 1]) and not bool(final.object_metadata.is_controlled[0, 0])

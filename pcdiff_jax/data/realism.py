@@ -121,6 +121,17 @@ def motion_features(traj: Trajectory, dt: float = DT_SECONDS) -> dict[str, Array
   }
 
 
+def histogram_counts(values: Array, valid: Array, edges: Array) -> Array:
+  """(K,) counts of the valid `values` per bin (values outside are clipped into
+  the end bins). Sum counts over scenarios, then normalise. Jit-able."""
+  xp = _xp(values, valid, edges)
+  k = edges.shape[0] - 1
+  idx = xp.clip(xp.searchsorted(edges, values.reshape(-1), side="right") - 1, 0, k - 1)
+  w = valid.reshape(-1).astype(values.dtype)
+  return (np.bincount(idx, weights=w, minlength=k) if xp is np
+          else jnp.bincount(idx, weights=w, length=k))
+
+
 def histogram(values: Array, valid: Array, edges: Array) -> Array:
   """L1-normalised histogram of the valid `values`.
 
@@ -132,11 +143,7 @@ def histogram(values: Array, valid: Array, edges: Array) -> Array:
     (K,) that sums to 1, or all zeros if nothing is valid. Jit-able.
   """
   xp = _xp(values, valid, edges)
-  k = edges.shape[0] - 1
-  idx = xp.clip(xp.searchsorted(edges, values.reshape(-1), side="right") - 1, 0, k - 1)
-  w = valid.reshape(-1).astype(values.dtype)
-  counts = (np.bincount(idx, weights=w, minlength=k) if xp is np
-            else jnp.bincount(idx, weights=w, length=k))
+  counts = histogram_counts(values, valid, edges)
   return counts / xp.maximum(counts.sum(), 1.0)
 
 

@@ -128,9 +128,9 @@ class Checkpointer:
       raise FileNotFoundError(f"no checkpoint in {self.directory}")
     self.manager = ocp.CheckpointManager(
         self.directory, item_names=("state", "config"),
-        options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=not read_only,
-                                             read_only=read_only,
-                                             enable_async_checkpointing=False))
+        options=ocp.CheckpointManagerOptions(
+            max_to_keep=None if read_only else keep, save_interval_steps=0 if read_only else 1,
+            create=not read_only, read_only=read_only, enable_async_checkpointing=False))
 
   def latest_step(self) -> Optional[int]:
     return self.manager.latest_step()

@@ -1,0 +1,111 @@
+"""IDM baseline: lane following with the Intelligent Driver Model, no prediction.
+
+Each controlled agent (the reactive set, fixed at `init`) at every step:
+
+- Lane: the lane-centre sample (WOMD types 1-3) nearest to a point
+  `lookahead` metres ahead of the agent among those whose direction is within
+  45 degrees of the agent's heading; this follows its lane and, at the end of
+  a lane, the connecting lane whose start lies ahead (WOMD records carry no
+  explicit successors). Steering is pure pursuit towards that sample:
+  psi_dot = v * 2 sin(alpha) / d, alpha the bearing of the sample.
+  No lane sample in range: the heading is held.
+- Speed: IDM (Treiber et al.) with the leader the nearest valid object whose
+  centre lies ahead in a corridor of half-width `corridor` around the
+  heading line (all objects: other agents, the SDC, log-replayed ones):
+  a = a_max [1 - (v / v0)^4 - (s* / s)^2],
+  s* = s0 + v T + v dv / (2 sqrt(a_max b)), s = bumper gap.
+  Traffic lights and stop signs are ignored (the paper's baseline: no
+  map rules beyond the lane).
+
+Emits [a, psi_dot] for the kinematic model. Pure jnp; one scenario per call.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+
+from pcdiff_jax.baselines.simple import ControlledFn, _fixed_set, reactive_agents
+from pcdiff_jax.sim import geometry
+from pcdiff_jax.sim.actors import Actor, ActorOutput
+from pcdiff_jax.sim.datatypes import Action, Array, SimulatorState, is_lane_center
+
+
+@dataclasses.dataclass(frozen=True)
+class IDMConfig:
+  desired_speed: float = 15.0      # m/s (v0); Waymax's own IDM uses 30 m/s on logged paths
+  min_gap: float = 2.0             # m (s0)
+  headway: float = 1.5             # s (T)
+  max_accel: float = 2.0           # m/s^2 (a_max)
+  comfortable_decel: float = 3.0   # m/s^2 (b)
+  exponent: float = 4.0
+  lookahead: float = 6.0           # m, pure-pursuit target distance
+  corridor: float = 1.8            # m, half-width of the leader search
+  max_brake: float = 8.0           # m/s^2
+
+
+def _leader_gap(state: SimulatorState, cfg: IDMConfig) -> tuple[Array, Array]:
+  """Bumper gap (O,) to the leader of each object and the leader's speed
+  along the follower's heading (inf gap where none)."""
+  cur = state.current_sim_trajectory
+  xy, yaw, valid = cur.xy[:, 0], cur.yaw[:, 0], cur.valid[:, 0]
+  length = cur.length[:, 0]
+  vel = cur.vel_xy[:, 0]
+  rel = geometry.to_local(xy[None, :, :], xy[:, None, :], yaw[:, None])     # (O, O, 2): j in i's frame
+  ahead = (rel[..., 0] > 0) & (jnp.abs(rel[..., 1]) < cfg.corridor)
+  ahead = ahead & valid[None, :] & ~jnp.eye(xy.shape[0], dtype=bool)
+  gap = rel[..., 0] - 0.5 * (length[:, None] + length[None, :])
+  gap = jnp.where(ahead, gap, jnp.inf)
+  j = jnp.argmin(gap, axis=1)
+  lead_gap = jnp.take_along_axis(gap, j[:, None], 1)[:, 0]
+  lead_speed = jnp.sum(vel[j] * geometry.unit(yaw), -1)
+  return lead_gap, lead_speed
+
+
+def idm_acceleration(speed: Array, gap: Array, lead_speed: Array, cfg: IDMConfig) -> Array:
+  """IDM acceleration (...,); an infinite gap is free driving."""
+  dv = speed - lead_speed
+  s_star = cfg.min_gap + jnp.maximum(speed * cfg.headway + speed * dv / (
+      2.0 * jnp.sqrt(cfg.max_accel * cfg.comfortable_decel)), 0.0)
+  free = 1.0 - (jnp.maximum(speed, 0.0) / cfg.desired_speed) ** cfg.exponent
+  finite = jnp.isfinite(gap)
+  safe_gap = jnp.where(finite, jnp.maximum(gap, 0.1), 1.0)
+  interaction = jnp.where(finite, (s_star / safe_gap) ** 2, 0.0)
+  return jnp.clip(cfg.max_accel * (free - interaction), -cfg.max_brake, cfg.max_accel)
+
+
+def _pursuit_yaw_rate(state: SimulatorState, cfg: IDMConfig) -> Array:
+  cur = state.current_sim_trajectory
+  xy, yaw, speed = cur.xy[:, 0], cur.yaw[:, 0], cur.speed[:, 0]
+  rg = state.roadgraph_points
+  lane = rg.valid & is_lane_center(rg.types)                                # (P,)
+  aligned = jnp.sum(rg.dir_xy[None] * geometry.unit(yaw)[:, None], -1) > jnp.cos(jnp.pi / 4)
+  probe = xy + cfg.lookahead * geometry.unit(yaw)                           # (O, 2)
+  d2 = jnp.sum((rg.xy[None] - probe[:, None]) ** 2, -1)                     # (O, P)
+  d2 = jnp.where(lane[None] & aligned, d2, jnp.inf)
+  k = jnp.argmin(d2, axis=1)
+  found = jnp.isfinite(jnp.take_along_axis(d2, k[:, None], 1)[:, 0])
+  target = geometry.to_local(rg.xy[k], xy, yaw)                             # (O, 2)
+  dist = jnp.sqrt(jnp.sum(target ** 2, -1) + 1e-6)
+  curvature = 2.0 * target[:, 1] / (dist ** 2)                               # 2 sin(alpha) / d
+  return jnp.where(found, speed * curvature, 0.0)
+
+
+def idm_actions(state: SimulatorState, cfg: IDMConfig = IDMConfig()) -> Array:
+  """(O, 2) [a, psi_dot] for every object of one scenario."""
+  cur = state.current_sim_trajectory
+  gap, lead_speed = _leader_gap(state, cfg)
+  accel = idm_acceleration(cur.speed[:, 0], gap, lead_speed, cfg)
+  return jnp.stack([accel, _pursuit_yaw_rate(state, cfg)], -1)
+
+
+def idm(cfg: IDMConfig = IDMConfig(), controlled_fn: ControlledFn = reactive_agents()) -> Actor:
+  """The IDM baseline as an Actor (controlled set fixed at `init`)."""
+  def select_action(params, state, actor_state, rng):
+    del params, rng
+    controlled = actor_state
+    valid = state.current_sim_trajectory.valid[..., 0] & controlled
+    data = jnp.where(valid[:, None], idm_actions(state, cfg), 0.0).astype(jnp.float32)
+    return ActorOutput(actor_state=actor_state, action=Action(data=data, valid=valid[:, None]),
+                       is_controlled=controlled)
+  return Actor(select_action=select_action, init=_fixed_set(controlled_fn), name="idm")

@@ -1,0 +1,147 @@
+"""SIMPL-AR baseline: the stage-1 encoder's marginal proposals, made consistent.
+
+At every replanning step: encode the scene, turn each agent's K = 6
+proposals into actions (the flat inverse of `model.latent`) and roll them out
+with f; choose one mode per agent that approximately minimises
+
+    sum_i -log max(p_i(k_i), eps) + lambda * sum_{i<j} Coll_ij(k_i, k_j),
+
+Coll_ij = the number of (step, circle pair) overlaps between the two rolled-out
+plans over the first `lookahead` steps (each agent covered by 3 circles of
+radius width / 2 along its length). The minimisation is iterated conditional
+modes: start from each agent's most likely mode, then `sweeps` passes over
+the agents, least confident (lowest top probability) first, each agent taking
+its best mode given the others' current choices (every update can only lower
+the objective). Then execute the
+chosen plan by tracking it 0.5 s ahead (`tracking_action`: why not its
+first inverse action), replanning at 10 Hz like ours.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from pcdiff_jax.config import Config
+from pcdiff_jax.model import encoder, latent
+from pcdiff_jax.model import features as features_lib
+from pcdiff_jax.model import planner
+from pcdiff_jax.sim import dynamics
+from pcdiff_jax.sim.actors import Actor, ActorOutput
+from pcdiff_jax.sim.datatypes import Action, Array
+
+
+@dataclasses.dataclass(frozen=True)
+class SimplARConfig:
+  collision_weight: float = 10.0   # lambda
+  lookahead: int = 30              # steps (3 s)
+  sweeps: int = 2
+  min_prob: float = 1e-3           # eps
+  track_steps: int = 5             # the executed action tracks the chosen proposal 0.5 s ahead
+
+
+def tracking_action(path: Array, speed: Array, cfg: SimplARConfig, dt: float = 0.1) -> Array:
+  """[a, psi_dot] (A, 2) that track agent-frame paths (A, T, 2) from [0, 0, 0, speed]:
+  reach the path's speed at step j = track_steps within j steps, steer by pure
+  pursuit towards its point at step j.
+
+  Why not the path's first inverse action: SIMPL's Bezier head pins a
+  proposal's start to the agent's position but not to its velocity, so the
+  first step carries a speed and heading jump; executed at every 10 Hz
+  replanning, that jump becomes a constant push (measured: agents spinning
+  and leaving the road). Tracking a point 0.5 s ahead follows the proposal
+  without its first-step artefact.
+  """
+  j = cfg.track_steps
+  target = path[:, j - 1]                                                   # (A, 2)
+  v_target = jnp.linalg.norm(path[:, j - 1] - path[:, j - 2], axis=-1) / dt
+  accel = (v_target - speed) / (j * dt)
+  dist2 = jnp.sum(target ** 2, -1)
+  curvature = 2.0 * target[:, 1] / jnp.maximum(dist2, 1e-2)
+  return jnp.stack([accel, jnp.maximum(speed, 0.0) * curvature], -1)
+
+
+def _circles(xy: Array, yaw: Array, length: Array, width: Array) -> Array:
+  """(..., T, 2) poses, sizes broadcasting against (..., T) -> (..., T, 3, 2)
+  circle centres at the rear, middle and front of the box."""
+  offset = jnp.maximum(length - width, 0.0)[..., None] / 2.0 * jnp.array([-1.0, 0.0, 1.0])
+  fwd = jnp.stack([jnp.cos(yaw), jnp.sin(yaw)], -1)[..., None, :]           # (..., T, 1, 2)
+  return xy[..., None, :] + offset[..., None] * fwd
+
+
+def collision_counts(xy: Array, yaw: Array, length: Array, width: Array, valid: Array) -> Array:
+  """Pairwise overlap counts between every mode pair.
+
+  xy (A, K, L, 2), yaw (A, K, L) scene frame; length, width, valid (A,).
+  Returns (A, K, A, K): circle-pair overlaps summed over the L steps (0 on
+  the diagonal blocks and for padded agents).
+  """
+  c = _circles(xy, yaw, length[:, None, None], width[:, None, None])       # (A, K, L, 3, 2)
+  r = width / 2.0
+  rr2 = ((r[:, None] + r[None, :]) ** 2)[:, None, :, None, None, None]    # (A, 1, A, 1, 1, 1)
+
+  def per_step(hits, ct):                                                  # ct (A, K, 3, 2)
+    d = ct[:, :, None, None, :, None, :] - ct[None, None, :, :, None, :, :]   # (A,K,A,K,3,3,2)
+    return hits + jnp.sum(jnp.sum(d ** 2, -1) < rr2, axis=(-1, -2)), None
+
+  num, k = xy.shape[:2]
+  hits, _ = jax.lax.scan(per_step, jnp.zeros((num, k, num, k), jnp.int32), jnp.moveaxis(c, 2, 0))
+  hits = hits.astype(jnp.float32)
+  pair = valid[:, None] & valid[None, :] & ~jnp.eye(valid.shape[0], dtype=bool)
+  return jnp.where(pair[:, None, :, None], hits, 0.0)
+
+
+def select_modes(probs: Array, coll: Array, valid: Array, cfg: SimplARConfig) -> Array:
+  """Iterated conditional modes on the joint objective. probs (A, K) -> modes (A,)."""
+  unary = -jnp.log(jnp.maximum(probs, cfg.min_prob))                         # (A, K)
+  modes = jnp.argmax(probs, -1)
+  num = probs.shape[0]
+
+  def update(i, modes):
+    # cost of each mode of agent i given the others' current modes
+    others = coll[i][:, jnp.arange(num), modes]                              # (K, A)
+    cost = unary[i] + cfg.collision_weight * jnp.sum(others, -1)
+    return modes.at[i].set(jnp.where(valid[i], jnp.argmin(cost), modes[i]))
+
+  # The least confident agents yield first: a confident agent keeps its mode
+  # unless the others cannot get out of its way.
+  order = jnp.argsort(jnp.max(probs, -1))
+  return jax.lax.fori_loop(0, num * cfg.sweeps, lambda n, m: update(order[n % num], m), modes)
+
+
+def plan_actions(encoder_params, state, cfg: Config, ar: SimplARConfig) -> tuple[Array, Array]:
+  """(O, 2) the action tracking each object's chosen mode and (O,) planned mask, one scene."""
+  feats = features_lib.scene_features(state, cfg.features)
+  out = encoder.apply(encoder_params, feats, cfg.encoder)
+  speed = planner.agent_speed(feats)
+  actions = latent.actions_from_positions(out.trajectories, speed[:, None], cfg.kinematics)  # (A,K,T,2)
+  states = dynamics.rollout(latent.initial_states(jnp.broadcast_to(speed[:, None], actions.shape[:2])),
+                            actions, cfg.kinematics.dt)                      # (A, K, T, 4)
+  xy, yaw = features_lib.agent_to_scene(states[..., :ar.lookahead, :2], states[..., :ar.lookahead, 2],
+                                        feats)
+  length, width = planner.agent_size(feats)
+  coll = collision_counts(xy, yaw, length, width, feats.agent_valid)
+  modes = select_modes(out.probs, coll, feats.agent_valid, ar)
+  chosen = jnp.take_along_axis(out.trajectories, modes[:, None, None, None], 1)[:, 0]  # (A, T, 2)
+  action = dynamics.clip_action(tracking_action(chosen, speed, ar, cfg.kinematics.dt), cfg.kinematics)
+  num_objects = state.object_metadata.ids.shape[-1]
+  per_object = features_lib.scatter_to_objects(action, feats, num_objects)
+  planned = features_lib.scatter_to_objects(feats.agent_valid, feats, num_objects, fill=False)
+  return per_object, planned.astype(bool)
+
+
+def simpl_ar(cfg: Config, ar: SimplARConfig = SimplARConfig()) -> Actor:
+  """The SIMPL-AR baseline as an Actor; params = the stage-1 encoder parameters."""
+  from pcdiff_jax.policy import reactive_set
+
+  def select_action(params, state, controlled, rng):
+    del rng
+    plan, planned = plan_actions(params, state, cfg, ar)
+    valid = controlled & planned & state.current_sim_trajectory.valid[..., 0]
+    data = jnp.where(valid[:, None], plan, 0.0)
+    return ActorOutput(actor_state=controlled, action=Action(data=data, valid=valid[:, None]),
+                       is_controlled=controlled)
+
+  return Actor(select_action=select_action, init=lambda rng, state: reactive_set(state, cfg),
+               name="simpl-ar")
