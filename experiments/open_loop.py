@@ -58,7 +58,7 @@ def main(argv=None) -> int:
       spec = dataclasses.replace(encoder_stage.cache_spec(cfg), current_steps=(10,))
       ex, info = data_lib.load_or_build(args.data, spec, os.path.join(args.workdir, "cache"), "val",
                                         limit=args.limit)
-      ex = diffusion_stage._diffusion_examples(ex)
+      ex = diffusion_stage.full_future_examples(ex)
       extra = {"encoder": models.encoder, "stats": models.stats}
       for steps in args.ddim_steps:
         ev = diffusion_stage.make_evaluate(cfg, ex, args.batch_size, args.samples, steps,

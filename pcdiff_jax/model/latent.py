@@ -160,10 +160,10 @@ def fit(actions: np.ndarray, dim: int, weights: Optional[np.ndarray] = None) -> 
   return LatentStats(mean=f32(mean), std=f32(std), components=f32(comps), explained=f32(explained))
 
 
-def to_numpy(stats: LatentStats) -> dict:
-  return {k: np.asarray(getattr(stats, k)) for k in ("mean", "std", "components", "explained")}
-
-
-def from_numpy(arrays: dict) -> LatentStats:
-  return LatentStats(**{k: jnp.asarray(arrays[k]) for k in ("mean", "std", "components", "explained")})
+def placeholder(horizon: int, dim: int) -> LatentStats:
+  """Statistics of the right shapes (identity scaling, zero components): a
+  template to restore saved statistics into."""
+  d_u = 2 * horizon
+  return LatentStats(mean=jnp.zeros(d_u), std=jnp.ones(d_u), components=jnp.zeros((d_u, dim)),
+                     explained=jnp.zeros(dim))
 

@@ -172,9 +172,8 @@ def build_examples(paths, spec: CacheSpec, progress: bool = True,
   return examples, ids, len(skipped)
 
 
-def _template(spec: CacheSpec) -> Example:
+def _template() -> Example:
   """An Example with placeholder leaves: its tree structure unflattens a cache file."""
-  del spec
   return Example(feats=SceneFeatures(**{f.name: 0 for f in dataclasses.fields(SceneFeatures)}),
                  targets=Targets(**{f.name: 0 for f in dataclasses.fields(Targets)}))
 
@@ -188,7 +187,7 @@ def load_or_build(paths, spec: CacheSpec, cache_dir: str, split: str,
   files = womd.expand_paths(paths)
   key = cache_key(files, spec) + (f"-first{limit}" if limit else "")
   path = os.path.join(cache_dir, f"{split}-{key}.npz")
-  template = _template(spec)
+  template = _template()
   if os.path.exists(path):
     with np.load(path, allow_pickle=False) as z:
       arrays = {k: z[k] for k in z.files}

@@ -29,7 +29,7 @@ import optax
 from pcdiff_jax import config as config_lib
 from pcdiff_jax.config import Config
 from pcdiff_jax.model import denoiser as denoiser_lib
-from pcdiff_jax.model import diffusion, latent, planner
+from pcdiff_jax.model import diffusion, encoder, latent, planner
 from pcdiff_jax.model.planner import Conditioning, Models
 from pcdiff_jax.sim import geometry
 from pcdiff_jax.training import data as data_lib
@@ -65,7 +65,6 @@ def fit_latent(encoder_params: Any, cfg: Config, examples: Example, num_scenes: 
   @jax.jit
   def collect(batch: Example):
     actions, full = logged_actions(batch, cfg)
-    from pcdiff_jax.model import encoder
     out = encoder.apply(encoder_params, batch.feats, cfg.encoder)
     props = latent.actions_from_positions(out.trajectories, planner.agent_speed(batch.feats)[..., None],
                                           cfg.kinematics)                       # (B, A, K, T, 2)
@@ -182,7 +181,7 @@ def make_evaluate(cfg: Config, examples: Example, batch_size: int, num_samples: 
 # Train / load.
 
 
-def _diffusion_examples(examples: Example) -> Example:
+def full_future_examples(examples: Example) -> Example:
   """Only examples with at least one fully valid future (t = 10 scenes, not t = 30)."""
   keep = np.asarray(np.any(examples.feats.agent_valid & examples.targets.future_valid.all(-1), -1))
   return jax.tree_util.tree_map(lambda a: a[keep], examples)
@@ -194,13 +193,12 @@ def train(cfg: Config, train_examples: Example, val_examples: Optional[Example],
   tc = cfg.diffusion_train
   folder = os.path.join(workdir, stage_dir(cfg.diffusion.denoiser.use_prior))
   enc_params, _ = encoder_stage.load(workdir)
-  train_examples = _diffusion_examples(train_examples)
+  train_examples = full_future_examples(train_examples)
   ckpt = trainer.Checkpointer(folder, tc.keep_checkpoints)
   resuming = ckpt.latest_step() is not None
   ckpt.close()
-  if resuming:   # the saved statistics are restored with the state; fit a placeholder
-    stats = latent.fit(np.random.default_rng(0).normal(size=(4, cfg.encoder.horizon, 2)),
-                       cfg.diffusion.latent_dim)
+  if resuming:   # the saved statistics are restored with the state: a template suffices
+    stats = latent.placeholder(cfg.encoder.horizon, cfg.diffusion.latent_dim)
   else:
     stats = fit_latent(enc_params, cfg, train_examples, cfg.diffusion.pca_fit_scenes)
     print(f"latent: d={stats.dim}, explained variance {float(jnp.sum(stats.explained)):.4f}")
@@ -216,7 +214,7 @@ def train(cfg: Config, train_examples: Example, val_examples: Optional[Example],
   step_fn = trainer.make_train_step(loss_fn, tx, with_extra=True)
   evaluate = None
   if val_examples is not None:
-    val = _diffusion_examples(val_examples)
+    val = full_future_examples(val_examples)
     ev = make_evaluate(cfg, val, tc.eval_batch_size)
     evaluate = lambda st: ev(st.params, st.extra)
   batch_at = lambda step: data_lib.batch_at(train_examples, step, tc.batch_size, tc.seed)
