@@ -16,8 +16,8 @@ $(VENV)/.installed: pyproject.toml
 
 install: $(VENV)/.installed
 
-demo: install
-	$(PY) -m experiments.rollout --scenarios $(WOMD) --method cv --out $(DEMO_OUT) --gifs 1
+demo: install   # scenes -> both training stages -> closed-loop table of ours and the baselines
+	$(PY) -m experiments.demo --out $(DEMO_OUT)
 
 test: install
 	$(PY) -m pytest -q -n $(PYTEST_WORKERS)

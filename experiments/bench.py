@@ -1,13 +1,21 @@
-"""Benchmarks of the foundation layer; results go to docs/BENCHMARKS.md.
+"""Benchmarks; results go to docs/BENCHMARKS.md.
 
   python -m experiments.bench --scenarios ../shared/data/womd/motion_data_one_example.tfrecord
+  python -m experiments.bench --scenarios ... --sections policy      # only the replanning step
 
 Measures: TFRecord parse speed (scenarios/s, the record replicated into a
 temporary file), closed-loop simulator step time (constant-velocity actor,
 64 reactive agents, 80 steps as one lax.scan; per batch size), the time of
 the collision/off-road metrics, and the scene encoder's forward pass (64
 agents, 256 map pieces; per preset: ms per scene and XLA temp memory).
-Compile time is excluded and reported separately.
+
+`policy` (the replanning step of ours, weights untrained: speed does not
+depend on their values): the time of one replanning for the reactive agents
+split into encode (features + encoder + proposal latents), sample (DDIM) and
+decode (latent -> actions -> rollout with f); its scaling with the padded
+agent count (8-128), DDIM steps and scenarios per call (vmap); and the
+80-step closed loop as one fused `lax.scan` against a Python loop calling the
+jitted step. Compile time is excluded and reported separately.
 """
 from __future__ import annotations
 
@@ -99,6 +107,131 @@ def bench_encoder(path: str, presets: list[str], repeats: int) -> list[dict]:
   return rows
 
 
+def _policy_models(state, cfg):
+  """Untrained Models for cfg on one scene (random orthonormal latent basis)."""
+  from pcdiff_jax.model import denoiser, encoder, features, latent, planner
+  feats = features.scene_features(state, cfg.features)
+  enc = encoder.init(jax.random.PRNGKey(0), feats, cfg.encoder)
+  d, horizon = cfg.diffusion.latent_dim, cfg.encoder.horizon
+  basis, _ = np.linalg.qr(np.random.default_rng(0).normal(size=(2 * horizon, d)))
+  stats = latent.placeholder(horizon, d).replace(components=jax.numpy.asarray(basis, np.float32))
+  batched = jax.tree_util.tree_map(lambda a: a[None], feats)
+  cond = planner.condition(enc, stats, batched, cfg)
+  one = jax.tree_util.tree_map(lambda a: a[0], cond.inputs)
+  den = denoiser.init(jax.random.PRNGKey(1), cond.mu[0], jax.numpy.int32(0), one, cfg.diffusion.denoiser)
+  return planner.Models(encoder=enc, denoiser=den, stats=stats)
+
+
+def _compiled_ms(fn, args, repeats: int) -> dict:
+  t0 = time.perf_counter()
+  compiled = jax.jit(fn).lower(*args).compile()
+  compile_s = time.perf_counter() - t0
+  jax.block_until_ready(compiled(*args))
+  times = _time(lambda: compiled(*args), repeats)
+  return {"ms": 1000 * float(np.median(times)), "ms_std": 1000 * float(np.std(times)),
+          "compile_s": compile_s}
+
+
+def bench_replan_parts(state, cfg, ddim_steps: int, repeats: int) -> dict:
+  """encode / sample / decode / whole replanning of one scene."""
+  from pcdiff_jax import policy
+  from pcdiff_jax.model import features, latent, planner
+  from pcdiff_jax.sim import dynamics
+  models = _policy_models(state, cfg)
+  rng = jax.random.PRNGKey(2)
+
+  def encode(m, s):
+    feats = jax.tree_util.tree_map(lambda a: a[None], features.scene_features(s, cfg.features))
+    return feats, planner.condition(m.encoder, m.stats, feats, cfg)
+
+  def sample(m, cond, r):
+    return planner.sample(m.denoiser, cond, cfg, r, ddim_steps, 0.0)
+
+  def decode(m, feats, cond, y0):
+    states = planner.decode_states(m.stats, cond, y0, cfg)
+    actions = dynamics.clip_action(latent.decode(y0, m.stats), cfg.kinematics)
+    return actions, features.agent_to_world(states[..., :2], states[..., 2], feats)
+
+  pcfg = policy.PolicyConfig(ddim_steps=ddim_steps)
+  feats, cond = jax.jit(encode)(models, state)
+  y0 = jax.jit(sample)(models, cond, rng)
+  row = {"agents": cfg.features.max_agents, "ddim_steps": ddim_steps,
+         "encode": _compiled_ms(encode, (models, state), repeats),
+         "sample": _compiled_ms(sample, (models, cond, rng), repeats),
+         "decode": _compiled_ms(decode, (models, feats, cond, y0), repeats),
+         "replan": _compiled_ms(lambda m, s, r: policy.plan_actions(m, s, cfg, pcfg, r),
+                                (models, state, rng), repeats)}
+  return row
+
+
+def bench_replan_batch(state, cfg, batch_sizes: list[int], repeats: int) -> list[dict]:
+  """One replanning per scenario, vmapped over B copies of the scene."""
+  from pcdiff_jax import policy
+  models = _policy_models(state, cfg)
+  pcfg = policy.PolicyConfig(ddim_steps=cfg.diffusion.ddim_steps)
+  rows = []
+  for b in batch_sizes:
+    batch = jax.tree_util.tree_map(lambda a: np.repeat(np.asarray(a)[None], b, 0), state)
+    rngs = jax.random.split(jax.random.PRNGKey(0), b)
+    fn = jax.vmap(lambda s, r, m: policy.plan_actions(m, s, cfg, pcfg, r), in_axes=(0, 0, None))
+    t = _compiled_ms(fn, (batch, rngs, models), repeats)
+    rows.append({"batch": b, **t, "ms_per_scenario": t["ms"] / b})
+  return rows
+
+
+def bench_fused_vs_loop(state, cfg, num_steps: int, repeats: int) -> dict:
+  """The closed loop of ours: one lax.scan over num_steps against a Python
+  loop over the jitted (select_action + env.step)."""
+  from pcdiff_jax import policy
+  from pcdiff_jax.sim import env
+  models = _policy_models(state, cfg)
+  actor = policy.actor(cfg, policy.PolicyConfig(ddim_steps=cfg.diffusion.ddim_steps))
+  rng = jax.random.PRNGKey(0)
+  start = env.reset(state)
+  fused = lambda s, r, m: env.rollout(s, actor, num_steps, r, params=m).final_state
+  fused_t = _compiled_ms(fused, (start, rng, models), repeats)
+
+  @jax.jit
+  def one_step(s, actor_state, r, m, k):
+    out = actor.select_action(m, s, actor_state, jax.random.fold_in(r, k))
+    return env.step(s, out.action, out.is_controlled), out.actor_state
+
+  def python_loop(s, r, m):
+    actor_state = actor.init(r, s)
+    for k in range(num_steps):
+      s, actor_state = one_step(s, actor_state, r, m, k)
+    return s
+
+  jax.block_until_ready(python_loop(start, rng, models))          # compile
+  loop_times = _time(lambda: python_loop(start, rng, models), repeats)
+  return {"agents": cfg.features.max_agents, "steps": num_steps,
+          "fused_ms_per_step": fused_t["ms"] / num_steps, "fused_compile_s": fused_t["compile_s"],
+          "loop_ms_per_step": 1000 * float(np.median(loop_times)) / num_steps}
+
+
+def bench_policy(path: str, preset: str, agent_counts: list[int], ddim_steps: list[int],
+                 batch_sizes: list[int], repeats: int) -> dict:
+  import dataclasses
+  from pcdiff_jax.config import get_config
+  from pcdiff_jax.data import womd
+  from pcdiff_jax.sim import env
+  base = get_config(preset)
+  state = env.reset(womd.load(path)[0])
+  with_agents = lambda a: dataclasses.replace(
+      base, features=dataclasses.replace(base.features, max_agents=a))
+  return {
+      "preset": preset,
+      "parts_by_agents": [bench_replan_parts(state, with_agents(a), base.diffusion.ddim_steps, repeats)
+                          for a in agent_counts],
+      "parts_by_ddim_steps": [bench_replan_parts(state, base, n, repeats) for n in ddim_steps],
+      "replan_by_batch": bench_replan_batch(state, base, batch_sizes, repeats),
+      "fused_vs_loop": bench_fused_vs_loop(womd.load(path)[0], base, 80, max(1, repeats // 2)),
+  }
+
+
+SECTIONS = ("parse", "rollout", "encoder", "policy")
+
+
 def main(argv=None) -> int:
   p = argparse.ArgumentParser(prog="python -m experiments.bench", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -108,14 +241,29 @@ def main(argv=None) -> int:
   p.add_argument("--repeats", type=int, default=5)
   p.add_argument("--encoder-presets", nargs="*", default=["cpu", "paper"],
                  help="config presets for the encoder benchmark (none: skip it)")
+  p.add_argument("--policy-preset", default="cpu", help="config preset of the policy benchmark")
+  p.add_argument("--agents", type=int, nargs="+", default=[8, 16, 32, 65, 128],
+                 help="padded agent counts (SDC included) for the policy scaling")
+  p.add_argument("--ddim-steps", type=int, nargs="+", default=[1, 5, 10, 25])
+  p.add_argument("--policy-batch-sizes", type=int, nargs="+", default=[1, 4, 16])
+  p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS)
   p.add_argument("--json", help="also write the results here")
   args = p.parse_args(argv)
   if not os.path.isfile(args.scenarios):
     p.error(f"--scenarios: file not found: {args.scenarios}")
-  results = {"device": str(jax.devices()[0]), "cpu_count": os.cpu_count(),
-             "parse": bench_parse(args.scenarios, args.parse_copies),
-             "rollout_cv_64_agents": bench_rollout(args.scenarios, args.batch_sizes, args.repeats),
-             "encoder_forward": bench_encoder(args.scenarios, args.encoder_presets, args.repeats)}
+  for name in ("agents", "ddim_steps", "policy_batch_sizes", "batch_sizes"):
+    if min(getattr(args, name)) < 1:
+      p.error(f"--{name.replace('_', '-')} values must be >= 1")
+  results = {"device": str(jax.devices()[0]), "cpu_count": os.cpu_count()}
+  if "parse" in args.sections:
+    results["parse"] = bench_parse(args.scenarios, args.parse_copies)
+  if "rollout" in args.sections:
+    results["rollout_cv_64_agents"] = bench_rollout(args.scenarios, args.batch_sizes, args.repeats)
+  if "encoder" in args.sections:
+    results["encoder_forward"] = bench_encoder(args.scenarios, args.encoder_presets, args.repeats)
+  if "policy" in args.sections:
+    results["policy"] = bench_policy(args.scenarios, args.policy_preset, args.agents, args.ddim_steps,
+                                     args.policy_batch_sizes, args.repeats)
   print(json.dumps(results, indent=2))
   if args.json:
     with open(args.json, "w") as f:

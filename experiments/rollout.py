@@ -24,6 +24,8 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--method", default="cv", choices=sorted(evaluation.METHODS) + list(evaluation.LEARNED))
   p.add_argument("--checkpoint", default=None,
                  help="training workdir of the learned methods (pcdiff, pcdiff-noprior, simpl-ar)")
+  p.add_argument("--ego", default="log", choices=evaluation.EGOS,
+                 help="the SDC's fixed policy: log replay (default) or IDM")
   p.add_argument("--ddim-steps", type=int, default=5)
   p.add_argument("--replan-every", type=int, default=1, help="steps between plans (1 = 10 Hz)")
   p.add_argument("--num-rollouts", type=int, default=1,
@@ -35,6 +37,7 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--batch-size", type=int, default=1, help="scenarios per jitted call")
   p.add_argument("--gifs", type=int, default=1, help="how many scenarios to render as GIF")
   p.add_argument("--seed", type=int, default=0)
+  p.add_argument("--no-progress", action="store_true", help="no progress bar")
   args = p.parse_args(argv)
   if args.method in evaluation.LEARNED and not args.checkpoint:
     p.error(f"--method {args.method} needs --checkpoint WORKDIR")
@@ -52,14 +55,15 @@ def parse_args(argv=None) -> argparse.Namespace:
 def main(argv=None) -> int:
   args = parse_args(argv)
   logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-  cfg = evaluation.EvalConfig(method=args.method, checkpoint=args.checkpoint, ddim_steps=args.ddim_steps,
+  cfg = evaluation.EvalConfig(method=args.method, checkpoint=args.checkpoint, ego=args.ego,
+                              ddim_steps=args.ddim_steps,
                               replan_every=args.replan_every, num_rollouts=args.num_rollouts,
                               seeds=args.seeds,
                               num_steps=args.num_steps, batch_size=args.batch_size,
                               gifs=args.gifs, seed=args.seed,
                               metrics=MetricsConfig(max_reactive_agents=args.max_agents))
   try:
-    evaluation.evaluate(args.scenarios, args.out, cfg)
+    evaluation.evaluate(args.scenarios, args.out, cfg, progress=not args.no_progress)
   except (FileNotFoundError, ValueError, RuntimeError) as err:
     print(f"error: {err}", file=sys.stderr)
     return 2

@@ -41,7 +41,7 @@ class FeaturesConfig:
   pieces per polyline), each resampled to `points_per_polyline` points; the
   `max_polylines` pieces nearest the SDC are kept.
   """
-  max_agents: int = 64
+  max_agents: int = 65             # the SDC + the 64 reactive agents scored by MetricsConfig
   history_steps: int = 11
   max_polylines: int = 256
   points_per_polyline: int = 10
@@ -55,7 +55,10 @@ class EncoderConfig:
   `num_neighbors`: edges per token (its k nearest tokens, itself included);
   0 means all pairs. `radius` scales distances in the relative pose encoding.
   Proposals: `num_modes` Bezier curves of degree `bezier_degree` over
-  `horizon` steps.
+  `horizon` steps. `anchor_velocity`: the second control point is fixed so
+  each curve starts at the agent's current forward velocity (SIMPL pins only
+  the start position; a free start velocity puts a jump into every
+  proposal's first action, which the closed loop executes at 10 Hz).
   """
   d_model: int = 128
   num_heads: int = 8
@@ -69,6 +72,7 @@ class EncoderConfig:
   horizon: int = 80                # steps at 10 Hz
   bezier_degree: int = 7
   proposal_scale: float = 10.0     # m, output scale of the control points
+  anchor_velocity: bool = True
 
 
 @dataclasses.dataclass(frozen=True)
@@ -146,10 +150,14 @@ class Config:
   diffusion_train: TrainConfig = TrainConfig(learning_rate=5e-4, weight_decay=1e-3)
 
 
+_CPU_ENCODER = EncoderConfig(d_model=64, num_heads=4, num_layers=2, agent_blocks=2,
+                             num_neighbors=32, dropout=0.1, bezier_degree=7)
+_CPU_DENOISER = DenoiserConfig(d_model=64, num_heads=4, num_layers=2, dropout=0.1)
+
 PRESETS: dict[str, Config] = {
     "tiny": Config(
         metrics=MetricsConfig(max_reactive_agents=8, max_road_edge_points=512),
-        features=FeaturesConfig(max_agents=8, history_steps=11, max_polylines=32,
+        features=FeaturesConfig(max_agents=9, history_steps=11, max_polylines=32,
                                 points_per_polyline=8, segment_length=20.0),
         encoder=EncoderConfig(d_model=32, num_heads=4, num_layers=2, agent_blocks=1,
                               num_neighbors=16, dropout=0.0, bezier_degree=5),
@@ -161,20 +169,32 @@ PRESETS: dict[str, Config] = {
                                     warmup_steps=2, total_steps=6, eval_batch_size=2,
                                     log_every=1, eval_every=3, checkpoint_every=2)),
     "cpu": Config(
-        features=FeaturesConfig(max_agents=64, history_steps=11, max_polylines=256,
+        features=FeaturesConfig(max_agents=65, history_steps=11, max_polylines=256,
                                 points_per_polyline=10, segment_length=20.0),
-        encoder=EncoderConfig(d_model=64, num_heads=4, num_layers=2, agent_blocks=2,
-                              num_neighbors=32, dropout=0.1, bezier_degree=7),
+        encoder=_CPU_ENCODER,
         encoder_train=TrainConfig(batch_size=8, learning_rate=2e-3, warmup_steps=100,
                                   total_steps=1500, eval_every=500, checkpoint_every=100,
                                   current_steps=(10, 30)),
-        diffusion=DiffusionConfig(denoiser=DenoiserConfig(d_model=64, num_heads=4, num_layers=2,
-                                                          dropout=0.1)),
+        diffusion=DiffusionConfig(denoiser=_CPU_DENOISER),
         diffusion_train=TrainConfig(batch_size=8, learning_rate=5e-4, weight_decay=1e-3,
                                     warmup_steps=100, total_steps=1500, eval_every=500,
                                     checkpoint_every=100)),
+    # `make demo`: the whole pipeline in minutes on 2 cores (cpu-sized layers,
+    # half the agents and map pieces, a few hundred steps per stage).
+    "demo": Config(
+        metrics=MetricsConfig(max_reactive_agents=32, max_road_edge_points=2048),
+        features=FeaturesConfig(max_agents=33, history_steps=11, max_polylines=128,
+                                points_per_polyline=10, segment_length=20.0),
+        encoder=_CPU_ENCODER,
+        encoder_train=TrainConfig(batch_size=8, learning_rate=2e-3, warmup_steps=50,
+                                  total_steps=400, eval_every=400, checkpoint_every=100,
+                                  current_steps=(10, 30)),
+        diffusion=DiffusionConfig(pca_fit_scenes=200, denoiser=_CPU_DENOISER),
+        diffusion_train=TrainConfig(batch_size=8, learning_rate=1e-3, weight_decay=1e-3,
+                                    warmup_steps=50, total_steps=400, eval_every=400,
+                                    checkpoint_every=100)),
     "paper": Config(
-        features=FeaturesConfig(max_agents=64, history_steps=11, max_polylines=256,
+        features=FeaturesConfig(max_agents=65, history_steps=11, max_polylines=256,
                                 points_per_polyline=10, segment_length=20.0),
         encoder=EncoderConfig(d_model=128, num_heads=8, num_layers=4, agent_blocks=2,
                               num_neighbors=64, dropout=0.1, bezier_degree=7)),

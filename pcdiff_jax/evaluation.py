@@ -24,7 +24,7 @@ from pcdiff_jax import metrics as metrics_lib
 from pcdiff_jax.config import MetricsConfig
 from pcdiff_jax.data import womd
 from pcdiff_jax.sim import env
-from pcdiff_jax.sim.actors import Actor
+from pcdiff_jax.sim.actors import Actor, combine
 
 log = logging.getLogger(__name__)
 
@@ -43,9 +43,11 @@ LEARNED = ("pcdiff", "pcdiff-noprior", "simpl-ar")
 class EvalConfig:
   """method: a baseline of METHODS or a learned policy of LEARNED (which needs
   `checkpoint`, the training workdir). ddim_steps / eta / replan_every: the
-  learned policy's sampler and replanning interval."""
+  learned policy's sampler and replanning interval. ego: the SDC's fixed
+  policy, "log" (replay) or "idm"."""
   method: str = "cv"
   checkpoint: Optional[str] = None
+  ego: str = "log"
   ddim_steps: int = 5
   eta: float = 0.0
   replan_every: int = 1
@@ -59,8 +61,22 @@ class EvalConfig:
   metrics: MetricsConfig = MetricsConfig()
 
 
+EGOS = ("log", "idm")
+
+
 def make_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
-  """(actor, params) of `cfg.method`; learned policies load `cfg.checkpoint`."""
+  """(actor, params) of `cfg.method` with the ego policy `cfg.ego`; learned
+  policies load `cfg.checkpoint`."""
+  if cfg.ego not in EGOS:
+    raise ValueError(f"unknown ego policy {cfg.ego!r}; choose one of {list(EGOS)}")
+  actor, params = _method_actor(cfg)
+  if cfg.ego == "idm":
+    ego = idm.idm(controlled_fn=idm.sdc_only, name="idm-ego")
+    actor = combine([actor, ego], name=f"{actor.name}+idm-ego")
+  return actor, params
+
+
+def _method_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
   if cfg.method in METHODS:
     return METHODS[cfg.method](cfg.metrics.max_reactive_agents), None
   if cfg.method not in LEARNED:

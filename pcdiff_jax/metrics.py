@@ -70,7 +70,7 @@ def score_rollout(final_state: SimulatorState, start_step: int, num_steps: int, 
   evaluated = evaluated_agents(final_state, start_step, max_agents)
   events = sim_metrics.event_counts(sim, log, final_state.roadgraph_points,
                                     final_state.object_metadata.object_types, evaluated, start_step,
-                                    max_road_edge_points)
+                                    max_road_edge_points, max_evaluated=max_agents)
   t = jnp.arange(sim.num_timesteps)
   steps = (t > start_step) & (t <= start_step + num_steps)                  # (T,)
   mask = evaluated[:, None] & steps[None]                                    # (O, T)

@@ -79,6 +79,21 @@ def test_bezier_basis_and_yaw_follow_the_curve():
   assert np.isfinite(np.asarray(g)).all()
 
 
+def test_proposals_start_at_the_agents_velocity(feats, params):
+  """With anchor_velocity the first step of every proposal moves the agent
+  by v dt along its heading (up to the curve's O(dt^2) bending), so the
+  inverse dynamics of a proposal carries no first-step jump."""
+  out = APPLY(params, feats, ECFG)
+  valid = np.asarray(feats.agent_valid)
+  speed = np.asarray(feats.agent_history)[:, -1, F.AGENT_CHANNELS.index("vel_x")][valid]
+  first = np.asarray(out.trajectories)[valid][:, :, 0]                    # (n, K, 2)
+  assert speed.max() > 1.0
+  np.testing.assert_allclose(first[..., 0], np.broadcast_to(0.1 * speed[:, None], first.shape[:2]), atol=0.1)
+  np.testing.assert_allclose(first[..., 1], 0.0, atol=0.1)
+  ctrl = np.asarray(out.control_points)[valid]
+  np.testing.assert_allclose(ctrl[:, :, 1, 0], np.broadcast_to(speed[:, None] * 8.0 / ECFG.bezier_degree, ctrl.shape[:2]), rtol=1e-5)
+
+
 def test_padded_slots_do_not_change_valid_outputs(feats, params):
   out = APPLY(params, feats, ECFG)
   rng = np.random.default_rng(1)

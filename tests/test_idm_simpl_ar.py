@@ -63,3 +63,17 @@ def test_circle_collision_counts():
   assert float(counts[0, 0, 1, 0]) == float(simpl_ar.collision_counts(
       xy[:, :, :2], yaw[:, :, :2], jnp.array([4.0, 4.0]), jnp.array([2.0, 2.0]),
       jnp.array([True, True]))[0, 0, 1, 0])                          # none after step 2
+
+
+def test_idm_ego_drives_the_sdc_while_the_method_drives_the_rest():
+  from pcdiff_jax import evaluation
+  actor, params = evaluation.make_actor(evaluation.EvalConfig(method="cv", ego="idm"))
+  state = env.reset(make_scene(num_steps=91))
+  out = jax.jit(lambda s: env.rollout(s, actor, 20, jax.random.key(0), params=params))(state)
+  final = out.final_state
+  controlled = np.asarray(final.object_metadata.is_controlled)
+  assert controlled[0] and controlled[1:4].all()                      # SDC (IDM) + reactive (CV)
+  sim_x, log_x = np.asarray(final.sim_trajectory.x[0, 11:31]), np.asarray(final.log_trajectory.x[0, 11:31])
+  assert not np.allclose(sim_x, log_x, atol=0.05)                   # the SDC no longer replays its log
+  with pytest.raises(ValueError, match="ego"):
+    evaluation.make_actor(evaluation.EvalConfig(method="cv", ego="planner"))

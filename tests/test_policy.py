@@ -98,3 +98,16 @@ def test_simpl_ar_and_idm_run_in_the_same_closed_loop(models):
     traj = final.sim_trajectory
     assert bool(jnp.all(jnp.isfinite(traj.x[:, :, 11:14])))
     assert bool(final.object_metadata.is_controlled[0, 1]) and not bool(final.object_metadata.is_controlled[0, 0])
+
+
+def test_controlled_agents_are_the_scored_agents(real_state):
+  """The learned policy controls the agents its encoder sees minus the SDC;
+  the metrics score the 64 nearest the SDC: with max_agents = 65 (the SDC +
+  64) the two sets are the same on the real sample (73 valid objects)."""
+  from pcdiff_jax import metrics as metrics_lib
+  cfg = get_config("cpu")
+  state = env.reset(real_state)
+  controlled = np.asarray(policy.reactive_set(state, cfg))
+  scored = np.asarray(metrics_lib.evaluated_agents(state, 10, cfg.metrics.max_reactive_agents))
+  assert controlled.sum() == 64
+  np.testing.assert_array_equal(controlled, scored)

@@ -77,15 +77,19 @@ def collision_counts(xy: Array, yaw: Array, length: Array, width: Array, valid: 
   Returns (A, K, A, K): circle-pair overlaps summed over the L steps (0 on
   the diagonal blocks and for padded agents).
   """
+  num, k = xy.shape[:2]
   c = _circles(xy, yaw, length[:, None, None], width[:, None, None])       # (A, K, L, 3, 2)
   r = width / 2.0
-  rr2 = ((r[:, None] + r[None, :]) ** 2)[:, None, :, None, None, None]    # (A, 1, A, 1, 1, 1)
+  rr2 = ((r[:, None] + r[None, :]) ** 2)[:, None, None, :, None, None]    # (A, 1, 1, A, 1, 1)
 
   def per_step(hits, ct):                                                  # ct (A, K, 3, 2)
-    d = ct[:, :, None, None, :, None, :] - ct[None, None, :, :, None, :, :]   # (A,K,A,K,3,3,2)
-    return hits + jnp.sum(jnp.sum(d ** 2, -1) < rr2, axis=(-1, -2)), None
+    # Squared distances of all circle pairs as one matmul (|a|^2 + |b|^2 - 2 a.b):
+    # the broadcast difference tensor was ~20x slower on CPU.
+    flat = ct.reshape(-1, 2)
+    sq = jnp.sum(flat ** 2, -1)
+    d2 = (sq[:, None] + sq[None, :] - 2.0 * flat @ flat.T).reshape(num, k, 3, num, k, 3)
+    return hits + jnp.sum(d2 < rr2, axis=(2, 5)), None
 
-  num, k = xy.shape[:2]
   hits, _ = jax.lax.scan(per_step, jnp.zeros((num, k, num, k), jnp.int32), jnp.moveaxis(c, 2, 0))
   hits = hits.astype(jnp.float32)
   pair = valid[:, None] & valid[None, :] & ~jnp.eye(valid.shape[0], dtype=bool)

@@ -73,6 +73,8 @@ from pcdiff_jax.sim.datatypes import Array
 _NEG = -1e9            # attention logit of a masked sender
 _MIN_SPEED_SQ = 1e-6   # (m per unit tau)^2 below which a proposal's yaw is held
 _DIST_QUANTUM = 0.01   # m, resolution of the neighbour ranking
+_DT = 0.1              # s, the WOMD step
+_VX = features_lib.AGENT_CHANNELS.index("vel_x")
 
 
 @struct.dataclass
@@ -265,26 +267,38 @@ class SFTLayer(nn.Module):
 
 
 class ProposalHead(nn.Module):
-  """(A, d) agent tokens -> logits (A, K), control points (A, K, n + 1, 2)."""
+  """(A, d) agent tokens, (A,) forward speeds -> logits (A, K), control points
+  (A, K, n + 1, 2) in the agent frame.
+
+  P0 = 0 (the agent's position). With `anchor_velocity`, P1 = (v T dt / n, 0):
+  the curve's derivative at the start is the agent's velocity (dt = horizon
+  duration / T); the head predicts the remaining n - 1 points.
+  """
   d_model: int
   num_modes: int
   degree: int
   scale: float = 1.0
+  anchor_velocity: bool = True
+  duration: float = 8.0            # s, the horizon
 
   @nn.compact
-  def __call__(self, h: Array) -> tuple[Array, Array]:
+  def __call__(self, h: Array, speed: Array) -> tuple[Array, Array]:
     d, k = self.d_model, self.num_modes
     modes = nn.Dense(k * d)(h).reshape(h.shape[:-1] + (k, d))         # (A, K, d)
     modes = nn.relu(nn.LayerNorm()(modes))
     score = nn.Dense(d)(modes)
     logits = nn.Dense(1)(nn.relu(nn.LayerNorm()(score)))[..., 0]      # (A, K)
     reg = nn.relu(nn.LayerNorm()(nn.Dense(d)(modes)))
+    num_free = self.degree - 1 if self.anchor_velocity else self.degree
     # The scale puts the initial control points at tens of metres, the size of
     # the targets, instead of ~1 m (a long first phase of training otherwise).
-    free = self.scale * nn.Dense(2 * self.degree)(reg)
-    free = free.reshape(h.shape[:-1] + (k, self.degree, 2))
-    origin = jnp.zeros(free.shape[:-2] + (1, 2), free.dtype)
-    return logits, jnp.concatenate([origin, free], axis=-2)           # (A, K, n+1, 2)
+    free = self.scale * nn.Dense(2 * num_free)(reg)
+    free = free.reshape(h.shape[:-1] + (k, num_free, 2))
+    fixed = [jnp.zeros(free.shape[:-2] + (1, 2), free.dtype)]
+    if self.anchor_velocity:
+      p1 = jnp.stack([speed * self.duration / self.degree, jnp.zeros_like(speed)], -1)
+      fixed.append(jnp.broadcast_to(p1[:, None, None, :], free.shape[:-2] + (1, 2)).astype(free.dtype))
+    return logits, jnp.concatenate(fixed + [free], axis=-2)           # (A, K, n+1, 2)
 
 
 class SceneEncoder(nn.Module):
@@ -321,8 +335,10 @@ class SceneEncoder(nn.Module):
     num_agents = av.shape[0]
     agent_tokens, map_tokens = h[:num_agents], h[num_agents:]
 
+    speed = hist[:, -1, _VX]                                          # (A,) agent frame
     logits, ctrl = ProposalHead(d, cfg.num_modes, cfg.bezier_degree, cfg.proposal_scale,
-                                 name="head")(agent_tokens)
+                                cfg.anchor_velocity, cfg.horizon * _DT,
+                                name="head")(agent_tokens, speed)
     basis, deriv = bezier_basis(cfg.bezier_degree, cfg.horizon)
     ctrl = jnp.where(av[:, None, None, None], ctrl, 0.0)              # padded agents stand still
     traj = jnp.einsum("ts,aksc->aktc", basis, ctrl)                  # (A, K, T, 2)
