@@ -3,6 +3,7 @@
   python -m experiments.rollout --scenarios '../shared/data/womd/*.tfrecord' --method cv --out runs/cv
   python -m experiments.rollout --scenarios 'data/synth/val-*' --method pcdiff --checkpoint runs/cpu \
       --ddim-steps 5 --num-rollouts 4 --seeds 3 --out runs/eval/pcdiff
+  python -m experiments.rollout ... --method pcdiff --guidance adversarial --w-pursue 30 --eta 0.07
 
 Writes OUT/metrics.json, OUT/metrics.md, OUT/scenarios.jsonl and OUT/gifs/.
 """
@@ -14,6 +15,8 @@ import sys
 
 from pcdiff_jax import evaluation
 from pcdiff_jax.config import MetricsConfig
+from pcdiff_jax.model.guidance import MODES as GUIDANCE_MODES
+from pcdiff_jax.model.guidance import GuidanceConfig
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -37,6 +40,19 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--batch-size", type=int, default=1, help="scenarios per jitted call")
   p.add_argument("--gifs", type=int, default=1, help="how many scenarios to render as GIF")
   p.add_argument("--seed", type=int, default=0)
+  g = p.add_argument_group("guidance (pcdiff, pcdiff-noprior)")
+  g.add_argument("--guidance", default="none", choices=GUIDANCE_MODES)
+  g.add_argument("--w-map", type=float, default=GuidanceConfig.w_map)
+  g.add_argument("--w-coll", type=float, default=GuidanceConfig.w_coll)
+  g.add_argument("--w-pursue", type=float, default=GuidanceConfig.w_pursue)
+  g.add_argument("--eta", type=float, default=GuidanceConfig.eta, help="latent step size")
+  g.add_argument("--guided-steps", type=int, default=GuidanceConfig.guided_steps,
+                 help="the last K DDIM steps are guided")
+  g.add_argument("--inner-steps", type=int, default=GuidanceConfig.inner_steps,
+                 help="gradient steps per guided DDIM step")
+  g.add_argument("--ibr-rounds", type=int, default=GuidanceConfig.ibr_rounds)
+  g.add_argument("--adversary", type=int, default=-1,
+                 help="object slot of the pursuer (default: the most threatening vehicle)")
   p.add_argument("--no-progress", action="store_true", help="no progress bar")
   args = p.parse_args(argv)
   if args.method in evaluation.LEARNED and not args.checkpoint:
@@ -49,6 +65,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.error("--num-steps must be <= 80 (WOMD has 80 future steps)")
   if args.gifs < 0:
     p.error("--gifs must be >= 0")
+  if args.guidance != "none" and args.method not in ("pcdiff", "pcdiff-noprior"):
+    p.error(f"--guidance {args.guidance} needs --method pcdiff or pcdiff-noprior")
+  for name in ("guided_steps", "inner_steps", "ibr_rounds"):
+    if getattr(args, name) < 1:
+      p.error(f"--{name.replace('_', '-')} must be >= 1")
+  if args.eta < 0:
+    p.error("--eta must be >= 0")
   return args
 
 
@@ -61,7 +84,12 @@ def main(argv=None) -> int:
                               seeds=args.seeds,
                               num_steps=args.num_steps, batch_size=args.batch_size,
                               gifs=args.gifs, seed=args.seed,
-                              metrics=MetricsConfig(max_reactive_agents=args.max_agents))
+                              metrics=MetricsConfig(max_reactive_agents=args.max_agents),
+                              guidance=GuidanceConfig(
+                                  mode=args.guidance, w_map=args.w_map, w_coll=args.w_coll,
+                                  w_pursue=args.w_pursue, eta=args.eta,
+                                  guided_steps=args.guided_steps, inner_steps=args.inner_steps,
+                                  ibr_rounds=args.ibr_rounds, adversary=args.adversary))
   try:
     evaluation.evaluate(args.scenarios, args.out, cfg, progress=not args.no_progress)
   except (FileNotFoundError, ValueError, RuntimeError) as err:

@@ -23,6 +23,8 @@ from pcdiff_jax.baselines import idm
 from pcdiff_jax import metrics as metrics_lib
 from pcdiff_jax.config import MetricsConfig
 from pcdiff_jax.data import womd
+from pcdiff_jax.model import guidance as guidance_lib
+from pcdiff_jax.model.guidance import GuidanceConfig
 from pcdiff_jax.sim import env
 from pcdiff_jax.sim.actors import Actor, combine
 
@@ -44,7 +46,8 @@ class EvalConfig:
   """method: a baseline of METHODS or a learned policy of LEARNED (which needs
   `checkpoint`, the training workdir). ddim_steps / eta / replan_every: the
   learned policy's sampler and replanning interval. ego: the SDC's fixed
-  policy, "log" (replay) or "idm"."""
+  policy, "log" (replay) or "idm". guidance: test-time guidance of the
+  learned diffusion policies (`model.guidance`)."""
   method: str = "cv"
   checkpoint: Optional[str] = None
   ego: str = "log"
@@ -59,6 +62,7 @@ class EvalConfig:
   gifs: int = 1
   seed: int = 0
   metrics: MetricsConfig = MetricsConfig()
+  guidance: GuidanceConfig = GuidanceConfig()
 
 
 EGOS = ("log", "idm")
@@ -69,6 +73,10 @@ def make_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
   policies load `cfg.checkpoint`."""
   if cfg.ego not in EGOS:
     raise ValueError(f"unknown ego policy {cfg.ego!r}; choose one of {list(EGOS)}")
+  cfg.guidance.validate()
+  if cfg.guidance.mode != "none" and cfg.method not in ("pcdiff", "pcdiff-noprior"):
+    raise ValueError(f"guidance {cfg.guidance.mode!r} needs a diffusion policy (pcdiff, pcdiff-noprior), "
+                     f"not {cfg.method!r}")
   actor, params = _method_actor(cfg)
   if cfg.ego == "idm":
     ego = idm.idm(controlled_fn=idm.sdc_only, name="idm-ego")
@@ -92,7 +100,7 @@ def _method_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
   use_prior = cfg.method == "pcdiff"
   models, model_cfg = diffusion_stage.load(cfg.checkpoint, use_prior=use_prior)
   pcfg = policy.PolicyConfig(ddim_steps=cfg.ddim_steps, eta=cfg.eta, prior_init=use_prior,
-                             replan_every=cfg.replan_every)
+                             replan_every=cfg.replan_every, guidance=cfg.guidance)
   return policy.actor(model_cfg, pcfg), models
 
 
@@ -110,9 +118,20 @@ def make_score_fn(cfg: EvalConfig):
   """jit(vmap) of the scores of rolled-out states (B,) -> metrics.RolloutScores (B,)."""
   start = cfg.init_steps - 1
 
+  g = cfg.guidance
+
   def one(final_state):
-    return metrics_lib.score_rollout(final_state, start, cfg.num_steps,
-                                     cfg.metrics.max_reactive_agents, cfg.metrics.max_road_edge_points)
+    scores = metrics_lib.score_rollout(final_state, start, cfg.num_steps,
+                                       cfg.metrics.max_reactive_agents, cfg.metrics.max_road_edge_points)
+    if g.mode != "adversarial":
+      return scores
+    # The policy fixed its pursuer at the start of the rollout from the same
+    # candidates (its reactive set = the evaluated agents): recompute it.
+    at_start = final_state.replace(timestep=jnp.int32(start))
+    adversary = (jnp.int32(g.adversary) if g.adversary >= 0 else guidance_lib.most_threatening(
+        at_start, metrics_lib.evaluated_agents(final_state, start, cfg.metrics.max_reactive_agents)))
+    return scores.replace(adversarial=metrics_lib.adversarial_scores(
+        final_state, start, adversary, cfg.metrics.max_road_edge_points))
   return jax.jit(jax.vmap(one))
 
 
@@ -148,6 +167,12 @@ def _markdown(summary: dict) -> str:
             f"{len(summary['skipped'])}. Runtime: one jitted closed-loop call over "
             f"{summary['runtime_ms_per_replan']['scenarios_per_call']} scenario rollouts, per step, "
             "compile excluded."]
+  adv = summary.get("adversarial")
+  if adv:
+    lines += ["", "| adversarial | ego-adv collision (%) | adversary off-road (%) | min distance (m) | "
+              "impact speed (m/s) |", "|---|---|---|---|---|",
+              f"| {adv['num_pairs']} pairs | {100 * adv['ego_adv_collision_rate']:.2f} | "
+              f"{100 * adv['adv_offroad_rate']:.2f} | {adv['min_distance']:.2f} | {adv['impact_speed']:.2f} |"]
   return "\n".join(lines) + "\n"
 
 
@@ -239,6 +264,9 @@ def evaluate(scenarios: Sequence[str] | str, out_dir: str, cfg: EvalConfig,
       "runtime_ms_per_replan": {**_mean_std(step_ms), "scenarios_per_call": call_size,
                                 "replan_every": cfg.replan_every, "note": "compile excluded"},
       "rates": {k: float(np.mean([m[k] for m in per_seed])) for k in per_seed[0]},
+      **({"adversarial": {k: float(np.nanmean([m[k] for m in per_seed])) for k in
+                          ("num_pairs", "ego_adv_collision_rate", "adv_offroad_rate", "min_distance",
+                           "impact_speed")}} if cfg.guidance.mode == "adversarial" else {}),
       "per_seed": per_seed,
       "skipped": skipped,
       "config": dataclasses.asdict(cfg),

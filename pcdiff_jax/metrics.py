@@ -13,10 +13,19 @@ Aggregated (`aggregate`, host side): collision rate, off-road rate, realism =
 the mean over the three quantities of W1 between the L1-normalised histograms
 (generated vs logged, summed over all scenarios first), minADE = the mean over
 agents of the smallest ADE over the N stochastic rollouts of a scenario.
+
+Adversarial runs add (`adversarial_scores`, `aggregate_adversarial`): the
+ego-adversary collision rate (their boxes overlap at a simulated step), the
+adversary's off-road rate (a vehicle on the road at the start that leaves
+it), the minimum over time of the ego-adversary centre distance, and the
+impact speed (their relative speed at the first contact, over collisions).
 """
 from __future__ import annotations
 
+from typing import Optional
+
 import numpy as np
+import jax
 import jax.numpy as jnp
 from flax import struct
 
@@ -41,6 +50,63 @@ class RolloutScores:
   hist_log: Array
   ade: Array
   ade_valid: Array
+  adversarial: Optional["AdversarialScores"] = None
+
+
+@struct.dataclass
+class AdversarialScores:
+  """One rollout (any leading batch dims): has_pair () bool, an adversary and
+  an ego valid at the start; collided, became_offroad () bool; min_distance ()
+  m; impact_speed () m/s at the first contact (0 without one)."""
+  has_pair: Array
+  collided: Array
+  became_offroad: Array
+  min_distance: Array
+  impact_speed: Array
+
+
+def adversarial_scores(final_state: SimulatorState, start_step: int, adversary: Array,
+                       max_road_edge_points: int) -> AdversarialScores:
+  """Safety scores of the ego (SDC) against the adversary (object slot, -1:
+  none) over the simulated steps. Unbatched."""
+  sim = final_state.sim_trajectory
+  ego = jnp.argmax(final_state.object_metadata.is_sdc)
+  adv = jnp.maximum(adversary, 0)
+  pair = jax.tree_util.tree_map(lambda a: jnp.stack([a[ego], a[adv]])[:, start_step:], sim)  # (2, T')
+  has_pair = (adversary >= 0) & (adversary != ego) & pair.valid[0, 0] & pair.valid[1, 0]
+  both = pair.valid[0] & pair.valid[1]                                    # (T',)
+  after = jnp.arange(both.shape[0]) > 0
+  contact = sim_metrics.pairwise_overlap(pair)[:, 0, 1] & both & after      # (T',)
+  first = jnp.argmax(contact)
+  rel_vel = pair.vel_xy[1, first] - pair.vel_xy[0, first]
+  dist = jnp.linalg.norm(pair.xy[1] - pair.xy[0], axis=-1)
+  min_distance = jnp.min(jnp.where(both & after, dist, jnp.inf))
+  adv_traj = jax.tree_util.tree_map(lambda a: a[1:2], pair)
+  off = sim_metrics.offroad(adv_traj, final_state.roadgraph_points, pair.xy[1, 0], max_road_edge_points)[0]
+  is_vehicle = final_state.object_metadata.object_types[adv] == 1
+  collided = has_pair & jnp.any(contact)
+  return AdversarialScores(
+      has_pair=has_pair, collided=collided,
+      became_offroad=has_pair & is_vehicle & ~off[0] & jnp.any(off[1:]),
+      min_distance=jnp.where(has_pair, min_distance, jnp.inf),
+      impact_speed=jnp.where(collided, jnp.linalg.norm(rel_vel), 0.0))
+
+
+def aggregate_adversarial(scores: AdversarialScores) -> dict[str, float]:
+  """Rates and means over every rollout with an ego-adversary pair."""
+  has = np.asarray(scores.has_pair).reshape(-1)
+  pick = lambda a: np.asarray(a).reshape(-1)[has]
+  n = int(has.sum())
+  collided = pick(scores.collided)
+  finite = pick(scores.min_distance)
+  finite = finite[np.isfinite(finite)]
+  return {
+      "num_pairs": n,
+      "ego_adv_collision_rate": float(collided.mean()) if n else float("nan"),
+      "adv_offroad_rate": float(pick(scores.became_offroad).mean()) if n else float("nan"),
+      "min_distance": float(finite.mean()) if finite.size else float("nan"),
+      "impact_speed": float(pick(scores.impact_speed)[collided].mean()) if collided.any() else float("nan"),
+  }
 
 
 def _num_bins() -> int:
@@ -107,4 +173,6 @@ def aggregate(scores: RolloutScores) -> dict[str, float]:
   out.update(realism_w1(np.sum(scores.hist_sim, axis=(0, 1)), np.sum(scores.hist_log, axis=(0, 1))))
   out["min_ade"] = float(min_ade[scored].mean()) if scored.any() else float("nan")
   out["num_ade_agents"] = int(scored.sum())
+  if scores.adversarial is not None:
+    out.update(aggregate_adversarial(scores.adversarial))
   return out

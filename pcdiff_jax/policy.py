@@ -27,36 +27,62 @@ from flax import struct
 
 from pcdiff_jax.config import Config
 from pcdiff_jax.model import features as features_lib
+from pcdiff_jax.model import guidance as guidance_lib
 from pcdiff_jax.model import latent, planner
 from pcdiff_jax.model.planner import Models
 from pcdiff_jax.sim import dynamics
 from pcdiff_jax.sim.actors import Actor, ActorOutput
-from pcdiff_jax.sim.datatypes import Action, Array, SimulatorState
+from pcdiff_jax.sim.datatypes import Action, Array, ObjectType, SimulatorState
 
 
 @dataclasses.dataclass(frozen=True)
 class PolicyConfig:
   """ddim_steps, eta: the sampler; prior_init False starts from N(0, I) (the
-  no-prior model); replan_every: steps between plans (1 = 10 Hz)."""
+  no-prior model); replan_every: steps between plans (1 = 10 Hz); guidance:
+  test-time guidance of every plan (`model.guidance`)."""
   ddim_steps: int = 5
   eta: float = 0.0
   prior_init: bool = True
   replan_every: int = 1
+  guidance: guidance_lib.GuidanceConfig = guidance_lib.GuidanceConfig()
 
 
 @struct.dataclass
 class PlanState:
   """Actor state for one scenario: controlled (O,) fixed set; plan (O, T, 2)
-  actions of the last plan; plan_valid (O,); age () steps since it was made."""
+  actions of the last plan; plan_valid (O,); age () steps since it was made;
+  adversary () object slot of the pursuer under adversarial guidance (-1: none)."""
   controlled: Array
   plan: Array
   plan_valid: Array
   age: Array
+  adversary: Array
+
+
+def _guide(models: Models, state: SimulatorState, feats, cond: planner.Conditioning, cfg: Config,
+           g: guidance_lib.GuidanceConfig, adversary: Array):
+  """The sampler's guide for one scene's batched feats / cond (None without guidance)."""
+  if g.mode == "none":
+    return None
+  edges = guidance_lib.scene_edges(state, feats.scene_xy[0], feats.scene_yaw[0], g.max_edge_points)
+  edges = jax.tree_util.tree_map(lambda a: a[None], edges)
+  length, width = planner.agent_size(feats)
+  hit = (feats.agent_index[0] == adversary) & feats.agent_valid[0] & (adversary >= 0)
+  pursuer = jnp.where(jnp.any(hit), jnp.argmax(hit), -1).astype(jnp.int32)
+  evader = jnp.where(feats.agent_valid[0, 0], 0, -1).astype(jnp.int32)   # slot 0 is the SDC
+  agents = guidance_lib.Agents(
+      length=length, width=width, valid=feats.agent_valid,
+      vehicle=feats.agent_types == ObjectType.VEHICLE, pursuer=pursuer[None], evader=evader[None])
+
+  def poses(y):
+    return planner.to_scene(planner.decode_states(models.stats, cond, y, cfg), feats)
+  return guidance_lib.make_guide(poses, agents, edges, g)
 
 
 def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: PolicyConfig,
-                 rng: Array) -> tuple[Array, Array]:
-  """A joint plan for one scene at its current step.
+                 rng: Array, adversary: Array = -1) -> tuple[Array, Array]:
+  """A joint plan for one scene at its current step (guided by policy.guidance;
+  `adversary`: the pursuer's object slot under adversarial guidance).
 
   Returns actions (O, T, 2) per object (zeros where not planned) and which
   objects got a plan (O,).
@@ -64,13 +90,25 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
   feats = features_lib.scene_features(state, cfg.features)
   batched = jax.tree_util.tree_map(lambda a: a[None], feats)
   cond = planner.condition(models.encoder, models.stats, batched, cfg)
+  guide = _guide(models, state, batched, cond, cfg, policy.guidance, jnp.asarray(adversary, jnp.int32))
+  steps = policy.guidance.guide_steps(policy.ddim_steps) if guide is not None else None
   y0 = planner.sample(models.denoiser, cond, cfg, rng, policy.ddim_steps, policy.eta,
-                      prior_init=policy.prior_init)
+                      prior_init=policy.prior_init, guide=guide, guide_steps=steps)
   actions = dynamics.clip_action(latent.decode(y0[0], models.stats), cfg.kinematics)  # (A, T, 2)
   num_objects = state.object_metadata.ids.shape[-1]
   per_object = features_lib.scatter_to_objects(actions, feats, num_objects)
   planned = features_lib.scatter_to_objects(feats.agent_valid, feats, num_objects, fill=False)
   return per_object, planned.astype(bool)
+
+
+def pursuer_of(state: SimulatorState, cfg: Config, g: guidance_lib.GuidanceConfig) -> Array:
+  """() the pursuer's object slot: the user's, or the most threatening reactive
+  vehicle at this step; -1 unless the guidance is adversarial."""
+  if g.mode != "adversarial":
+    return jnp.int32(-1)
+  if g.adversary >= 0:
+    return jnp.int32(g.adversary)
+  return guidance_lib.most_threatening(state, reactive_set(state, cfg))
 
 
 def reactive_set(state: SimulatorState, cfg: Config) -> Array:
@@ -86,6 +124,7 @@ def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
   the rollout for batches."""
   if policy.replan_every < 1 or policy.replan_every > cfg.encoder.horizon:
     raise ValueError(f"replan_every must be in [1, {cfg.encoder.horizon}], got {policy.replan_every}")
+  policy.guidance.validate()
 
   def init(rng, state):
     del rng
@@ -93,19 +132,20 @@ def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
     return PlanState(controlled=reactive_set(state, cfg),
                      plan=jnp.zeros((num_objects, cfg.encoder.horizon, 2), jnp.float32),
                      plan_valid=jnp.zeros((num_objects,), bool),
-                     age=jnp.asarray(policy.replan_every, jnp.int32))   # plan at the first call
+                     age=jnp.asarray(policy.replan_every, jnp.int32),   # plan at the first call
+                     adversary=pursuer_of(state, cfg, policy.guidance))
 
   def select_action(models, state, ps: PlanState, rng):
     replan = ps.age >= policy.replan_every
     plan, plan_valid = jax.lax.cond(
-        replan, lambda: plan_actions(models, state, cfg, policy, rng),
+        replan, lambda: plan_actions(models, state, cfg, policy, rng, ps.adversary),
         lambda: (ps.plan, ps.plan_valid))
     age = jnp.where(replan, 0, ps.age)
     now = jnp.take(plan, age, axis=1)                                    # (O, 2)
     alive = state.current_sim_trajectory.valid[..., 0]
     valid = ps.controlled & plan_valid & alive
     action = Action(data=jnp.where(valid[:, None], now, 0.0), valid=valid[:, None])
-    new = PlanState(controlled=ps.controlled, plan=plan, plan_valid=plan_valid, age=age + 1)
+    new = ps.replace(plan=plan, plan_valid=plan_valid, age=age + 1)
     return ActorOutput(actor_state=new, action=action, is_controlled=ps.controlled)
 
   name = "pcdiff" if policy.prior_init else "pcdiff-noprior"
@@ -117,7 +157,7 @@ def step(state: SimulatorState, models: Models, cfg: Config, rng: Array,
   """One replanning for one scenario: the first planned action of the reactive
   agents (Action (O, 2), valid (O, 1)) and the controlled mask (O,)."""
   controlled = reactive_set(state, cfg)
-  plan, planned = plan_actions(models, state, cfg, policy, rng)
+  plan, planned = plan_actions(models, state, cfg, policy, rng, pursuer_of(state, cfg, policy.guidance))
   valid = controlled & planned & state.current_sim_trajectory.valid[..., 0]
   return Action(data=jnp.where(valid[:, None], plan[:, 0], 0.0), valid=valid[:, None]), controlled
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from conftest import make_scene
 from pcdiff_jax import baselines
@@ -85,3 +86,24 @@ def test_offroad_on_the_evaluated_subset_matches_the_full_test(real_state):
   assert int(full.became_offroad) > 0                                  # CV leaves the road
   for name, value in vars(full).items():
     assert int(getattr(subset, name)) == int(value), name
+
+
+def test_adversarial_scores_of_a_rear_end_pursuit():
+  """Object 3 starts 30 m behind the SDC (10 m/s) and drives at 20 m/s: the
+  boxes (4.5 m long) first touch at t = 2.6 s, relative speed 10 m/s."""
+  from pcdiff_jax import metrics as metrics_lib
+  state = make_scene(num_steps=91)
+  t = np.arange(91) * 0.1
+  sim = state.sim_trajectory
+  sim = sim.replace(x=sim.x.at[3].set(jnp.asarray(-30.0 + 20.0 * t, jnp.float32)),
+                    vel_x=sim.vel_x.at[3].set(20.0))
+  final = state.replace(sim_trajectory=sim, timestep=jnp.int32(90))
+  s = jax.jit(metrics_lib.adversarial_scores, static_argnums=(1, 3))(final, 10, jnp.int32(3), 512)
+  assert bool(s.has_pair) and bool(s.collided) and not bool(s.became_offroad)
+  assert float(s.impact_speed) == pytest.approx(10.0, abs=1e-3)
+  assert float(s.min_distance) < 0.5
+  none = metrics_lib.adversarial_scores(final, 10, jnp.int32(-1), 512)
+  assert not bool(none.has_pair) and not bool(none.collided)
+  agg = metrics_lib.aggregate_adversarial(jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), s, none))
+  assert agg["num_pairs"] == 1 and agg["ego_adv_collision_rate"] == 1.0
+  assert agg["impact_speed"] == pytest.approx(10.0, abs=1e-3)

@@ -1,0 +1,122 @@
+"""Guidance costs and latent-space guides: finite gradients, and J goes down."""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from pcdiff_jax.model import guidance as G
+
+T = 40
+CFG = G.GuidanceConfig(mode="objective", eta=0.5, inner_steps=5, coll_horizon=T, map_stride=2)
+
+
+def _agents(num=3, valid=None, pursuer=-1, evader=-1):
+  valid = jnp.ones(num, bool) if valid is None else jnp.asarray(valid)
+  return G.Agents(length=jnp.full(num, 4.5), width=jnp.full(num, 2.0), valid=valid,
+                  vehicle=jnp.ones(num, bool), pursuer=jnp.int32(pursuer), evader=jnp.int32(evader))
+
+
+def _road(half_width=4.0, empty=False):
+  """Two straight road edges along x at y = -w and y = +w (road on their left)."""
+  x = jnp.linspace(-100.0, 100.0, 201)
+  lower = jnp.stack([x, jnp.full_like(x, -half_width)], -1)              # direction +x: road at +y
+  upper = jnp.stack([x[::-1], jnp.full_like(x, half_width)], -1)         # direction -x: road at -y
+  xy = jnp.concatenate([lower, upper])
+  d = jnp.concatenate([jnp.tile(jnp.array([[1.0, 0.0]]), (201, 1)), jnp.tile(jnp.array([[-1.0, 0.0]]), (201, 1))])
+  ids = jnp.concatenate([jnp.zeros(201, jnp.int32), jnp.ones(201, jnp.int32)])
+  return G.Edges(xy=xy, dir=d, ids=ids, valid=jnp.full(402, not empty))
+
+
+def _poses(base_xy):
+  """A toy 'decoder': latent (A, 2) shifts each agent's whole path."""
+  def poses(y):
+    xy = base_xy + y[:, None, :]
+    return xy, jnp.zeros(xy.shape[:-1])
+  return poses
+
+
+def _straight(y0s, speeds, x0s):
+  t = jnp.arange(T) * 0.1
+  return jnp.stack([jnp.stack([x0 + v * t, jnp.full_like(t, y0)], -1)
+                    for x0, y0, v in zip(x0s, y0s, speeds)])                 # (A, T, 2)
+
+
+def test_map_and_collision_costs_are_zero_for_a_clean_scene_and_positive_otherwise():
+  base = _straight([-1.5, 1.5, -1.5], [10.0, 10.0, 10.0], [0.0, 0.0, -60.0])
+  agents, road = _agents(), _road()
+  xy, yaw = _poses(base)(jnp.zeros((3, 2)))
+  assert float(jnp.sum(G.map_cost(xy, yaw, agents, road, CFG))) == 0.0
+  assert float(jnp.sum(G.collision_cost(xy, yaw, agents, CFG))) == 0.0
+  off = _poses(base)(jnp.array([[0.0, -3.0], [0.0, 0.0], [0.0, 0.0]]))
+  assert float(G.map_cost(*off, agents, road, CFG)[0]) > 0
+  stacked = _poses(base)(jnp.array([[0.0, 2.0], [0.0, 0.0], [0.0, 0.0]]))   # agents 0, 1 side by side, touching
+  coll = G.collision_cost(*stacked, agents, CFG)
+  assert float(coll[0]) > 0 and float(coll[1]) > 0 and float(coll[2]) == 0.0
+
+
+@pytest.mark.parametrize("case", ["coincident", "padded", "empty_map", "all_padded"])
+def test_gradients_are_finite_everywhere(case):
+  base = _straight([0.0, 0.0, 0.0], [10.0, 10.0, 0.0], [0.0, 0.0, 0.0])   # 0 and 1 coincide
+  valid = {"padded": [True, True, False], "all_padded": [False] * 3}.get(case, [True] * 3)
+  agents = _agents(valid=valid, pursuer=1, evader=0)
+  road = _road(empty=case == "empty_map")
+  poses = _poses(base)
+
+  def total(y):
+    xy, yaw = poses(y)
+    return (jnp.sum(G.objective(xy, yaw, agents, road, CFG)) + G.pursuit_cost(xy, agents, CFG))
+  g = jax.grad(total)(jnp.zeros((3, 2)))
+  assert np.isfinite(np.asarray(g)).all()
+  if case == "all_padded":
+    assert float(jnp.abs(g).sum()) == 0.0
+
+
+def test_objective_guide_lowers_the_objective():
+  # Agent 0 drifts off the road and into agent 1.
+  base = _straight([-1.5, 1.5], [10.0, 10.0], [0.0, 0.0])
+  agents, road = _agents(2), _road()
+  poses = _poses(base)
+  y0 = jnp.array([[0.0, 2.2], [0.0, 0.0]])                              # overlapping side by side
+  y_off = jnp.array([[0.0, -3.5], [0.0, 0.0]])                          # off the lower edge
+  guide = G.objective_guide(poses, agents, road, CFG)
+  for y in (y0, y_off):
+    before = float(jnp.sum(G.objective(*poses(y), agents, road, CFG)))
+    after = float(jnp.sum(G.objective(*poses(guide(y, None, 0, 0)), agents, road, CFG)))
+    assert before > 0 and after < 0.5 * before, (before, after)
+
+
+def test_objective_guide_leaves_padded_agents_alone():
+  base = _straight([-1.5, 1.5, 1.5], [10.0, 10.0, 10.0], [0.0, 0.0, 0.0])
+  agents = _agents(valid=[True, True, False])
+  y = jnp.array([[0.0, 2.2], [0.0, 0.0], [0.0, 5.0]])
+  out = G.objective_guide(_poses(base), agents, _road(), CFG)(y, None, 0, 0)
+  np.testing.assert_array_equal(np.asarray(out[2]), np.asarray(y[2]))
+
+
+def test_adversarial_guide_moves_the_pursuer_toward_the_evader():
+  base = _straight([-1.5, 1.5, -1.5], [10.0, 10.0, 10.0], [0.0, -10.0, -40.0])
+  agents, road = _agents(pursuer=1, evader=0), _road()
+  cfg = dataclasses.replace(CFG, mode="adversarial", w_pursue=10.0, eta=0.05, ibr_rounds=2)
+  poses = _poses(base)
+  y = jnp.zeros((3, 2))
+  out = G.adversarial_guide(poses, agents, road, cfg)(y, None, 0, 0)
+  before = float(G.pursuit_cost(poses(y)[0], agents, cfg))
+  moved = np.asarray(out)
+  pursuer_only = jnp.asarray(np.where(np.arange(3)[:, None] == 1, moved, 0.0))
+  assert float(G.pursuit_cost(poses(pursuer_only)[0], agents, cfg)) < before   # pursuer closes in
+  evader_only = jnp.asarray(np.where(np.arange(3)[:, None] == 0, moved, 0.0))
+  assert float(G.pursuit_cost(poses(evader_only)[0], agents, cfg)) > before    # evader gets away
+  assert not np.allclose(moved[1], 0.0)
+
+
+def test_guide_steps_are_the_last_ones_and_bad_configs_are_refused():
+  assert G.GuidanceConfig(guided_steps=2).guide_steps(5).tolist() == [False, False, False, True, True]
+  assert G.GuidanceConfig(guided_steps=9).guide_steps(3).all()
+  with pytest.raises(ValueError, match="mode"):
+    G.GuidanceConfig(mode="magic").validate()
+  with pytest.raises(ValueError, match="inner_steps"):
+    G.GuidanceConfig(inner_steps=0).validate()
