@@ -31,6 +31,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="the SDC's fixed policy: log replay (default) or IDM")
   p.add_argument("--ddim-steps", type=int, default=5)
   p.add_argument("--replan-every", type=int, default=1, help="steps between plans (1 = 10 Hz)")
+  p.add_argument("--consistent-noise", action="store_true",
+                 help="draw each agent's initial DDIM noise once per rollout (default: at every replan)")
   p.add_argument("--num-rollouts", type=int, default=1,
                  help="stochastic rollouts per scenario (minADE takes the best)")
   p.add_argument("--seeds", type=int, default=1, help="repeat everything with this many seeds (mean, std)")
@@ -79,7 +81,7 @@ def main(argv=None) -> int:
   args = parse_args(argv)
   logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
   cfg = evaluation.EvalConfig(method=args.method, checkpoint=args.checkpoint, ego=args.ego,
-                              ddim_steps=args.ddim_steps,
+                              ddim_steps=args.ddim_steps, consistent_noise=args.consistent_noise,
                               replan_every=args.replan_every, num_rollouts=args.num_rollouts,
                               seeds=args.seeds,
                               num_steps=args.num_steps, batch_size=args.batch_size,

@@ -20,6 +20,7 @@ joint plan for all A agents with DDIM and decodes it into T actions
 from __future__ import annotations
 
 import dataclasses
+from typing import Optional
 
 import jax
 import jax.numpy as jnp
@@ -39,24 +40,35 @@ from pcdiff_jax.sim.datatypes import Action, Array, ObjectType, SimulatorState
 class PolicyConfig:
   """ddim_steps, eta: the sampler; prior_init False starts from N(0, I) (the
   no-prior model); replan_every: steps between plans (1 = 10 Hz); guidance:
-  test-time guidance of every plan (`model.guidance`)."""
+  test-time guidance of every plan (`model.guidance`).
+
+  consistent_noise: each object's initial DDIM noise is drawn once per rollout
+  (at `init`) and reused by every replanning, so consecutive plans start from
+  the same point of the prior and stay on the same mode. With fresh noise at
+  every replan (the default, plain DDIM) an agent can switch modes every
+  100 ms: measured in docs/RESULTS.md, consistent noise makes the motion far
+  smoother (realism) but commits agents to a mode (minADE, collisions).
+  """
   ddim_steps: int = 5
   eta: float = 0.0
   prior_init: bool = True
   replan_every: int = 1
   guidance: guidance_lib.GuidanceConfig = guidance_lib.GuidanceConfig()
+  consistent_noise: bool = False
 
 
 @struct.dataclass
 class PlanState:
   """Actor state for one scenario: controlled (O,) fixed set; plan (O, T, 2)
   actions of the last plan; plan_valid (O,); age () steps since it was made;
-  adversary () object slot of the pursuer under adversarial guidance (-1: none)."""
+  adversary () object slot of the pursuer under adversarial guidance (-1: none);
+  noise (O, d) each object's initial DDIM noise (consistent_noise)."""
   controlled: Array
   plan: Array
   plan_valid: Array
   age: Array
   adversary: Array
+  noise: Array
 
 
 def _guide(models: Models, state: SimulatorState, feats, cond: planner.Conditioning, cfg: Config,
@@ -80,9 +92,10 @@ def _guide(models: Models, state: SimulatorState, feats, cond: planner.Condition
 
 
 def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: PolicyConfig,
-                 rng: Array, adversary: Array = -1) -> tuple[Array, Array]:
+                 rng: Array, adversary: Array = -1, noise: Optional[Array] = None) -> tuple[Array, Array]:
   """A joint plan for one scene at its current step (guided by policy.guidance;
-  `adversary`: the pursuer's object slot under adversarial guidance).
+  `adversary`: the pursuer's object slot under adversarial guidance; noise
+  (O, d): per-object initial noise, default drawn from rng).
 
   Returns actions (O, T, 2) per object (zeros where not planned) and which
   objects got a plan (O,).
@@ -92,8 +105,10 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
   cond = planner.condition(models.encoder, models.stats, batched, cfg)
   guide = _guide(models, state, batched, cond, cfg, policy.guidance, jnp.asarray(adversary, jnp.int32))
   steps = policy.guidance.guide_steps(policy.ddim_steps) if guide is not None else None
+  init_noise = None if noise is None else noise[feats.agent_index][None]   # (1, A, d)
   y0 = planner.sample(models.denoiser, cond, cfg, rng, policy.ddim_steps, policy.eta,
-                      prior_init=policy.prior_init, guide=guide, guide_steps=steps)
+                      prior_init=policy.prior_init, guide=guide, guide_steps=steps,
+                      init_noise=init_noise)
   actions = dynamics.clip_action(latent.decode(y0[0], models.stats), cfg.kinematics)  # (A, T, 2)
   num_objects = state.object_metadata.ids.shape[-1]
   per_object = features_lib.scatter_to_objects(actions, feats, num_objects)
@@ -127,18 +142,19 @@ def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
   policy.guidance.validate()
 
   def init(rng, state):
-    del rng
     num_objects = state.object_metadata.ids.shape[-1]
     return PlanState(controlled=reactive_set(state, cfg),
                      plan=jnp.zeros((num_objects, cfg.encoder.horizon, 2), jnp.float32),
                      plan_valid=jnp.zeros((num_objects,), bool),
                      age=jnp.asarray(policy.replan_every, jnp.int32),   # plan at the first call
-                     adversary=pursuer_of(state, cfg, policy.guidance))
+                     adversary=pursuer_of(state, cfg, policy.guidance),
+                     noise=jax.random.normal(jax.random.fold_in(rng, 1), (num_objects, cfg.diffusion.latent_dim)))
 
   def select_action(models, state, ps: PlanState, rng):
     replan = ps.age >= policy.replan_every
     plan, plan_valid = jax.lax.cond(
-        replan, lambda: plan_actions(models, state, cfg, policy, rng, ps.adversary),
+        replan, lambda: plan_actions(models, state, cfg, policy, rng, ps.adversary,
+                                     ps.noise if policy.consistent_noise else None),
         lambda: (ps.plan, ps.plan_valid))
     age = jnp.where(replan, 0, ps.age)
     now = jnp.take(plan, age, axis=1)                                    # (O, 2)

@@ -78,6 +78,19 @@ def test_replanning_interval_and_single_step(models):
     policy.actor(CFG, policy.PolicyConfig(replan_every=0))
 
 
+def test_consistent_noise_makes_the_plan_a_function_of_the_scene(models):
+  """With the rollout's noise (consistent_noise), the step's rng does not
+  change the plan (eta = 0); without it, it does."""
+  state = env.reset(make_scene(num_steps=91))
+  pcfg = policy.PolicyConfig(ddim_steps=1, consistent_noise=True)
+  ps = policy.actor(CFG, pcfg).init(jax.random.key(0), state)
+  plan = jax.jit(lambda r, n: policy.plan_actions(models, state, CFG, pcfg, r, -1, n)[0])
+  a, b = plan(jax.random.key(1), ps.noise), plan(jax.random.key(2), ps.noise)
+  np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+  fresh = jax.jit(lambda r: policy.plan_actions(models, state, CFG, pcfg, r)[0])
+  assert not np.array_equal(np.asarray(fresh(jax.random.key(1))), np.asarray(fresh(jax.random.key(2))))
+
+
 def test_rollout_cli_needs_a_checkpoint_for_learned_methods(tmp_path, womd_path):
   from experiments import rollout
   with pytest.raises(SystemExit):

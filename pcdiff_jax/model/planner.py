@@ -96,11 +96,13 @@ def schedule_of(cfg: Config) -> diffusion.Schedule:
 
 def sample(denoiser_params: Any, cond: Conditioning, cfg: Config, rng: Array,
            num_steps: Optional[int] = None, eta: Optional[float] = None,
-           prior_init: bool = True, guide=None, guide_steps=None) -> Array:
+           prior_init: bool = True, guide=None, guide_steps=None,
+           init_noise: Optional[Array] = None) -> Array:
   """DDIM joint plans (B, A, d) for a batch of scenes.
 
   prior_init False starts from N(0, I) with unit noise scale (the no-prior
   variant); the denoiser still reads whatever tokens its config uses.
+  init_noise (B, A, d): the unit noise of the initial sample (default: drawn from rng).
   """
   d = cfg.diffusion
   num_steps = d.ddim_steps if num_steps is None else num_steps
@@ -110,7 +112,7 @@ def sample(denoiser_params: Any, cond: Conditioning, cfg: Config, rng: Array,
   def denoise(y, s):
     return denoiser_lib.apply(denoiser_params, y, s, cond.inputs, d.denoiser)
   return diffusion.ddim_sample(denoise, mu, sigma, schedule_of(cfg), rng, num_steps, eta,
-                               guide=guide, guide_steps=guide_steps)
+                               guide=guide, guide_steps=guide_steps, init_noise=init_noise)
 
 
 def decode_states(stats: LatentStats, cond: Conditioning, y0: Array, cfg: Config) -> Array:
