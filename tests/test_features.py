@@ -94,8 +94,8 @@ def test_shapes_and_masks_on_make_scene(scene_state):
   chex.assert_shape([f.agent_center, f.agent_dir], (a, 2))
   chex.assert_shape(f.map_points, (m, p, 2))
   chex.assert_shape([f.map_center, f.map_dir], (m, 2))
-  # 4 objects, 8 agent slots: the SDC (slot 0) first, then by distance.
-  np.testing.assert_array_equal(f.agent_valid, [True] * 4 + [False] * 4)
+  # 4 objects, 9 agent slots: the SDC (slot 0) first, then by distance.
+  np.testing.assert_array_equal(f.agent_valid, [True] * 4 + [False] * (a - 4))
   np.testing.assert_array_equal(f.agent_index[:4], [0, 1, 2, 3])
   assert not np.asarray(f.agent_history[4:]).any()
   assert np.asarray(f.agent_history_valid[:4]).all()
