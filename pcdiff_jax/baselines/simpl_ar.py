@@ -27,7 +27,7 @@ from pcdiff_jax.config import Config
 from pcdiff_jax.model import encoder, latent
 from pcdiff_jax.model import features as features_lib
 from pcdiff_jax.model import planner
-from pcdiff_jax.sim import dynamics
+from pcdiff_jax.sim import dynamics, geometry
 from pcdiff_jax.sim.actors import Actor, ActorOutput
 from pcdiff_jax.sim.datatypes import Action, Array
 
@@ -62,14 +62,6 @@ def tracking_action(path: Array, speed: Array, cfg: SimplARConfig, dt: float = 0
   return jnp.stack([accel, jnp.maximum(speed, 0.0) * curvature], -1)
 
 
-def _circles(xy: Array, yaw: Array, length: Array, width: Array) -> Array:
-  """(..., T, 2) poses, sizes broadcasting against (..., T) -> (..., T, 3, 2)
-  circle centres at the rear, middle and front of the box."""
-  offset = jnp.maximum(length - width, 0.0)[..., None] / 2.0 * jnp.array([-1.0, 0.0, 1.0])
-  fwd = jnp.stack([jnp.cos(yaw), jnp.sin(yaw)], -1)[..., None, :]           # (..., T, 1, 2)
-  return xy[..., None, :] + offset[..., None] * fwd
-
-
 def collision_counts(xy: Array, yaw: Array, length: Array, width: Array, valid: Array) -> Array:
   """Pairwise overlap counts between every mode pair.
 
@@ -78,7 +70,7 @@ def collision_counts(xy: Array, yaw: Array, length: Array, width: Array, valid: 
   the diagonal blocks and for padded agents).
   """
   num, k = xy.shape[:2]
-  c = _circles(xy, yaw, length[:, None, None], width[:, None, None])       # (A, K, L, 3, 2)
+  c = geometry.box_circles(xy, yaw, length[:, None, None], width[:, None, None])       # (A, K, L, 3, 2)
   r = width / 2.0
   rr2 = ((r[:, None] + r[None, :]) ** 2)[:, None, None, :, None, None]    # (A, 1, 1, A, 1, 1)
 

@@ -129,16 +129,11 @@ def map_cost(xy: Array, yaw: Array, agents: Agents, edges: Edges, cfg: GuidanceC
   return jnp.where(agents.valid & agents.vehicle, per_agent, 0.0)
 
 
-def _circles(xy: Array, yaw: Array, length: Array, width: Array) -> Array:
-  """(..., A, T, 3, 2) circle centres at the rear, middle and front."""
-  offset = (jnp.maximum(length - width, 0.0) / 2.0)[..., None, None] * jnp.array([-1.0, 0.0, 1.0])
-  return xy[..., None, :] + offset[..., None] * geometry.unit(yaw)[..., None, :]
-
-
 def collision_cost(xy: Array, yaw: Array, agents: Agents, cfg: GuidanceConfig) -> Array:
   """(..., A) squared circle overlaps with every other valid agent over the near term."""
   h = cfg.coll_horizon
-  c = _circles(xy[..., :h, :], yaw[..., :h], agents.length, agents.width)  # (..., A, H, 3, 2)
+  c = geometry.box_circles(xy[..., :h, :], yaw[..., :h], agents.length[..., None],
+                           agents.width[..., None])                       # (..., A, H, 3, 2)
   r = agents.width / 2.0
   diff = c[..., :, None, :, :, None, :] - c[..., None, :, :, None, :, :]   # (..., A, A, H, 3, 3, 2)
   dist = jnp.sqrt(jnp.sum(diff ** 2, -1) + _EPS)

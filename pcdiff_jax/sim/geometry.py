@@ -46,6 +46,13 @@ def box_corners(x: Array, y: Array, yaw: Array, length: Array, width: Array) -> 
                     centre - hl * fwd - hw * left, centre + hl * fwd - hw * left], axis=-2)
 
 
+def box_circles(xy: Array, yaw: Array, length: Array, width: Array) -> Array:
+  """(..., 3, 2) centres of 3 circles (radius width / 2) covering boxes at the
+  rear, middle and front. xy (..., 2), yaw (...); sizes broadcast against yaw."""
+  offset = jnp.maximum(length - width, 0.0)[..., None] / 2.0 * jnp.array([-1.0, 0.0, 1.0])
+  return xy[..., None, :] + offset[..., None] * unit(yaw)[..., None, :]
+
+
 def _box_axes(yaw: Array) -> Array:
   """(..., 2, 2) the two edge normals of a box of heading `yaw`."""
   fwd = unit(yaw)
