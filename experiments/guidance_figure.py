@@ -7,7 +7,7 @@ Rolls ours out in closed loop (80 steps, replanning every 10 steps by default)
 on the first N scenes once per
 guidance mode with the same seed, and writes OUT/fig3.png (rows: scenes;
 columns: modes; each panel the last step with 8 s trails; the SDC red, the
-pursuer of the adversarial run outlined in the title) and
+pursuer of the adversarial run ringed and traced in orange in every column) and
 OUT/gifs/<mode>_<scenario>.gif.
 """
 from __future__ import annotations
@@ -71,6 +71,7 @@ def main(argv=None) -> int:
       return 2
     print(f"rolling out {n} scene(s) with guidance {mode} ...", flush=True)
     finals[mode] = jax.device_get(evaluation.make_rollout_fn(actor, cfg)(states, rngs, params))
+  pursuers = np.asarray(jax.vmap(lambda f: evaluation.pursuer_at_start(f, cfg))(finals["adversarial"]))
   os.makedirs(os.path.join(args.out, "gifs"), exist_ok=True)
   fig = viz._figure((4.0 * len(MODES), 4.0 * n), 90)
   axes = fig.subplots(n, len(MODES), squeeze=False)
@@ -78,8 +79,14 @@ def main(argv=None) -> int:
     for j, mode in enumerate(MODES):
       one = jax.tree_util.tree_map(lambda a: np.asarray(a[i]), finals[mode])
       last = one.sim_trajectory.num_timesteps - 1
-      viz.plot_scene(axes[i, j], one, timestep=last, trail=80, view_radius=50.0,
-                     title=f"{meta.scenario_id[i][:10]}: {TITLES[mode]}")
+      ax = viz.plot_scene(axes[i, j], one, timestep=last, trail=80, view_radius=50.0,
+                          title=f"{meta.scenario_id[i][:10]}: {TITLES[mode]}")
+      k = int(pursuers[i])
+      if k >= 0:   # the pursuer of the adversarial run, ringed in every column for comparison
+        traj = one.sim_trajectory
+        ax.plot(traj.x[k, 10:], traj.y[k, 10:], color="tab:orange", lw=1.0)
+        ax.scatter([traj.x[k, last]], [traj.y[k, last]], s=160, facecolors="none",
+                   edgecolors="tab:orange", linewidths=2.0, zorder=5)
       viz.render_rollout_gif(one, os.path.join(args.out, "gifs", f"{mode}_{meta.scenario_id[i]}.gif"))
   fig.tight_layout()
   path = os.path.join(args.out, "fig3.png")

@@ -33,10 +33,13 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--replan-every", type=int, default=1, help="steps between plans (1 = 10 Hz)")
   p.add_argument("--consistent-noise", action="store_true",
                  help="draw each agent's initial DDIM noise once per rollout (default: at every replan)")
+  p.add_argument("--execute", default="actions", choices=["actions", "track"],
+                 help="pcdiff: run the plan's actions (paper) or track its path 0.5 s ahead (pure pursuit)")
   p.add_argument("--num-rollouts", type=int, default=1,
                  help="stochastic rollouts per scenario (minADE takes the best)")
   p.add_argument("--seeds", type=int, default=1, help="repeat everything with this many seeds (mean, std)")
   p.add_argument("--out", required=True, help="output folder")
+  p.add_argument("--max-scenarios", type=int, default=None, help="only the first N scenarios")
   p.add_argument("--num-steps", type=int, default=80)
   p.add_argument("--max-agents", type=int, default=64, help="reactive agents nearest the SDC")
   p.add_argument("--batch-size", type=int, default=1, help="scenarios per jitted call")
@@ -55,6 +58,10 @@ def parse_args(argv=None) -> argparse.Namespace:
   g.add_argument("--ibr-rounds", type=int, default=GuidanceConfig.ibr_rounds)
   g.add_argument("--adversary", type=int, default=-1,
                  help="object slot of the pursuer (default: the most threatening vehicle)")
+  g.add_argument("--max-step", type=float, default=GuidanceConfig.max_step,
+                 help="trust region: latent step per agent and inner step")
+  g.add_argument("--score-adversary", action="store_true",
+                 help="score the ego against the most threatening agent in non-adversarial runs too")
   p.add_argument("--no-progress", action="store_true", help="no progress bar")
   args = p.parse_args(argv)
   if args.method in evaluation.LEARNED and not args.checkpoint:
@@ -63,6 +70,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                "seeds"):
     if getattr(args, name) < 1:
       p.error(f"--{name.replace('_', '-')} must be >= 1")
+  if args.max_scenarios is not None and args.max_scenarios < 1:
+    p.error("--max-scenarios must be >= 1")
   if args.num_steps > 80:
     p.error("--num-steps must be <= 80 (WOMD has 80 future steps)")
   if args.gifs < 0:
@@ -74,6 +83,8 @@ def parse_args(argv=None) -> argparse.Namespace:
       p.error(f"--{name.replace('_', '-')} must be >= 1")
   if args.eta < 0:
     p.error("--eta must be >= 0")
+  if args.max_step <= 0:
+    p.error("--max-step must be > 0")
   return args
 
 
@@ -82,14 +93,16 @@ def main(argv=None) -> int:
   logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
   cfg = evaluation.EvalConfig(method=args.method, checkpoint=args.checkpoint, ego=args.ego,
                               ddim_steps=args.ddim_steps, consistent_noise=args.consistent_noise,
+                              execute=args.execute,
                               replan_every=args.replan_every, num_rollouts=args.num_rollouts,
                               seeds=args.seeds,
                               num_steps=args.num_steps, batch_size=args.batch_size,
-                              gifs=args.gifs, seed=args.seed,
+                              gifs=args.gifs, seed=args.seed, score_adversary=args.score_adversary,
+                              max_scenarios=args.max_scenarios,
                               metrics=MetricsConfig(max_reactive_agents=args.max_agents),
                               guidance=GuidanceConfig(
                                   mode=args.guidance, w_map=args.w_map, w_coll=args.w_coll,
-                                  w_pursue=args.w_pursue, eta=args.eta,
+                                  w_pursue=args.w_pursue, eta=args.eta, max_step=args.max_step,
                                   guided_steps=args.guided_steps, inner_steps=args.inner_steps,
                                   ibr_rounds=args.ibr_rounds, adversary=args.adversary))
   try:

@@ -47,7 +47,10 @@ class EvalConfig:
   `checkpoint`, the training workdir). ddim_steps / eta / replan_every: the
   learned policy's sampler and replanning interval. ego: the SDC's fixed
   policy, "log" (replay) or "idm". guidance: test-time guidance of the
-  learned diffusion policies (`model.guidance`)."""
+  learned diffusion policies (`model.guidance`). score_adversary: also score
+  the ego against the most threatening agent (the pursuer adversarial
+  guidance would pick) when the run is not adversarial, for comparison.
+  max_scenarios: the first N scenarios of the files only."""
   method: str = "cv"
   checkpoint: Optional[str] = None
   ego: str = "log"
@@ -55,6 +58,7 @@ class EvalConfig:
   eta: float = 0.0
   replan_every: int = 1
   consistent_noise: bool = False
+  execute: str = "actions"
   num_rollouts: int = 1
   seeds: int = 1
   num_steps: int = 80
@@ -64,6 +68,12 @@ class EvalConfig:
   seed: int = 0
   metrics: MetricsConfig = MetricsConfig()
   guidance: GuidanceConfig = GuidanceConfig()
+  score_adversary: bool = False
+  max_scenarios: Optional[int] = None
+
+  @property
+  def adversarial_scores(self) -> bool:
+    return self.guidance.mode == "adversarial" or self.score_adversary
 
 
 EGOS = ("log", "idm")
@@ -102,7 +112,7 @@ def _method_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
   models, model_cfg = diffusion_stage.load(cfg.checkpoint, use_prior=use_prior)
   pcfg = policy.PolicyConfig(ddim_steps=cfg.ddim_steps, eta=cfg.eta, prior_init=use_prior,
                              replan_every=cfg.replan_every, guidance=cfg.guidance,
-                             consistent_noise=cfg.consistent_noise)
+                             consistent_noise=cfg.consistent_noise, execute=cfg.execute)
   return policy.actor(model_cfg, pcfg), models
 
 
@@ -120,21 +130,27 @@ def make_score_fn(cfg: EvalConfig):
   """jit(vmap) of the scores of rolled-out states (B,) -> metrics.RolloutScores (B,)."""
   start = cfg.init_steps - 1
 
-  g = cfg.guidance
-
   def one(final_state):
     scores = metrics_lib.score_rollout(final_state, start, cfg.num_steps,
                                        cfg.metrics.max_reactive_agents, cfg.metrics.max_road_edge_points)
-    if g.mode != "adversarial":
+    if not cfg.adversarial_scores:
       return scores
-    # The policy fixed its pursuer at the start of the rollout from the same
-    # candidates (its reactive set = the evaluated agents): recompute it.
-    at_start = final_state.replace(timestep=jnp.int32(start))
-    adversary = (jnp.int32(g.adversary) if g.adversary >= 0 else guidance_lib.most_threatening(
-        at_start, metrics_lib.evaluated_agents(final_state, start, cfg.metrics.max_reactive_agents)))
     return scores.replace(adversarial=metrics_lib.adversarial_scores(
-        final_state, start, adversary, cfg.metrics.max_road_edge_points))
+        final_state, start, pursuer_at_start(final_state, cfg), cfg.metrics.max_road_edge_points))
   return jax.jit(jax.vmap(one))
+
+
+def pursuer_at_start(final_state, cfg: EvalConfig) -> jax.Array:
+  """() the pursuer's object slot of one rolled-out scene: the user's, or the
+  most threatening evaluated vehicle at the rollout start. The policy fixes its
+  pursuer there from the same candidates (its reactive set = the evaluated
+  agents), so this recomputes it."""
+  if cfg.guidance.adversary >= 0:
+    return jnp.int32(cfg.guidance.adversary)
+  start = cfg.init_steps - 1
+  at_start = final_state.replace(timestep=jnp.int32(start))
+  return guidance_lib.most_threatening(
+      at_start, metrics_lib.evaluated_agents(final_state, start, cfg.metrics.max_reactive_agents))
 
 
 def _pad_batch(state, size: int):
@@ -178,6 +194,9 @@ def _markdown(summary: dict) -> str:
   return "\n".join(lines) + "\n"
 
 
+_ADVERSARIAL = ("num_pairs", "ego_adv_collision_rate", "adv_offroad_rate", "min_distance", "impact_speed")
+
+
 def _mean_std(values) -> dict:
   v = np.asarray(values, np.float64)
   return {"mean": float(np.mean(v)), "std": float(np.std(v))}
@@ -209,7 +228,7 @@ def evaluate(scenarios: Sequence[str] | str, out_dir: str, cfg: EvalConfig,
       scores_seed = []
       load_errors: list = []
       batches = womd.iterate(files, batch_size=cfg.batch_size, with_meta=True, on_error="skip",
-                             skipped=load_errors)
+                             skipped=load_errors, max_scenarios=cfg.max_scenarios)
       bar = tqdm(batches, desc=f"{cfg.method} seed {seed}", unit="batch", disable=not progress)
       for batch_index, (state, meta) in enumerate(bar):
         n = state.shape[0]
@@ -271,9 +290,9 @@ def evaluate(scenarios: Sequence[str] | str, out_dir: str, cfg: EvalConfig,
                                 "ms_per_scenario": float(np.mean(step_ms)) / call_size,
                                 "replan_every": cfg.replan_every, "note": "compile excluded"},
       "rates": {k: float(np.mean([m[k] for m in per_seed])) for k in per_seed[0]},
-      **({"adversarial": {k: float(np.nanmean([m[k] for m in per_seed])) for k in
-                          ("num_pairs", "ego_adv_collision_rate", "adv_offroad_rate", "min_distance",
-                           "impact_speed")}} if cfg.guidance.mode == "adversarial" else {}),
+      **({"adversarial": {k: float(np.nanmean([m[k] for m in per_seed])) for k in _ADVERSARIAL},
+          "adversarial_std": {k: float(np.nanstd([m[k] for m in per_seed])) for k in _ADVERSARIAL}}
+         if cfg.adversarial_scores else {}),
       "per_seed": per_seed,
       "skipped": skipped,
       "config": dataclasses.asdict(cfg),

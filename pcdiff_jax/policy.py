@@ -31,9 +31,10 @@ from pcdiff_jax.model import features as features_lib
 from pcdiff_jax.model import guidance as guidance_lib
 from pcdiff_jax.model import latent, planner
 from pcdiff_jax.model.planner import Models
-from pcdiff_jax.sim import dynamics
+from pcdiff_jax.sim import dynamics, geometry
 from pcdiff_jax.sim.actors import Actor, ActorOutput
 from pcdiff_jax.sim.datatypes import Action, Array, ObjectType, SimulatorState
+from pcdiff_jax.sim.road_field import RoadField
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,6 +49,12 @@ class PolicyConfig:
   every replan (the default, plain DDIM) an agent can switch modes every
   100 ms: measured in docs/RESULTS.md, consistent noise makes the motion far
   smoother (realism) but commits agents to a mode (minADE, collisions).
+
+  execute: "actions" runs the plan's decoded actions open loop until the next
+  replan (the paper's policy); "track" instead steers each agent from its
+  simulated state towards the plan's point `track_steps` ahead (pure pursuit,
+  as SIMPL-AR executes its proposals), which ignores the noise of a plan's
+  first action (docs/RESULTS.md: "The expected order does not hold").
   """
   ddim_steps: int = 5
   eta: float = 0.0
@@ -55,6 +62,8 @@ class PolicyConfig:
   replan_every: int = 1
   guidance: guidance_lib.GuidanceConfig = guidance_lib.GuidanceConfig()
   consistent_noise: bool = False
+  execute: str = "actions"
+  track_steps: int = 5
 
 
 @struct.dataclass
@@ -62,22 +71,25 @@ class PlanState:
   """Actor state for one scenario: controlled (O,) fixed set; plan (O, T, 2)
   actions of the last plan; plan_valid (O,); age () steps since it was made;
   adversary () object slot of the pursuer under adversarial guidance (-1: none);
-  noise (O, d) each object's initial DDIM noise (consistent_noise)."""
+  noise (O, d) each object's initial DDIM noise (consistent_noise); road the
+  scene's road signed-distance field for guidance, built once at `init`;
+  path (O, T, 2) the last plan's positions in the world frame."""
   controlled: Array
   plan: Array
+  path: Array
   plan_valid: Array
   age: Array
   adversary: Array
   noise: Array
+  road: RoadField
 
 
 def _guide(models: Models, state: SimulatorState, feats, cond: planner.Conditioning, cfg: Config,
-           g: guidance_lib.GuidanceConfig, adversary: Array):
+           g: guidance_lib.GuidanceConfig, adversary: Array, road: RoadField):
   """The sampler's guide for one scene's batched feats / cond (None without guidance)."""
   if g.mode == "none":
     return None
-  edges = guidance_lib.scene_edges(state, feats.scene_xy[0], feats.scene_yaw[0], g.max_edge_points)
-  edges = jax.tree_util.tree_map(lambda a: a[None], edges)
+  road = jax.tree_util.tree_map(lambda a: a[None], road.in_frame(feats.scene_xy[0], feats.scene_yaw[0]))
   length, width = planner.agent_size(feats)
   hit = (feats.agent_index[0] == adversary) & feats.agent_valid[0] & (adversary >= 0)
   pursuer = jnp.where(jnp.any(hit), jnp.argmax(hit), -1).astype(jnp.int32)
@@ -88,32 +100,55 @@ def _guide(models: Models, state: SimulatorState, feats, cond: planner.Condition
 
   def poses(y):
     return planner.to_scene(planner.decode_states(models.stats, cond, y, cfg), feats)
-  return guidance_lib.make_guide(poses, agents, edges, g)
+  return guidance_lib.make_guide(poses, agents, road, g)
 
 
 def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: PolicyConfig,
-                 rng: Array, adversary: Array = -1, noise: Optional[Array] = None) -> tuple[Array, Array]:
+                 rng: Array, adversary: Array = -1, noise: Optional[Array] = None,
+                 road: Optional[RoadField] = None) -> tuple[Array, Array, Array]:
   """A joint plan for one scene at its current step (guided by policy.guidance;
   `adversary`: the pursuer's object slot under adversarial guidance; noise
-  (O, d): per-object initial noise, default drawn from rng).
+  (O, d): per-object initial noise, default drawn from rng; road: the scene's
+  road field, default built here, which costs a field per call).
 
-  Returns actions (O, T, 2) per object (zeros where not planned) and which
-  objects got a plan (O,).
+  Returns actions (O, T, 2) per object (zeros where not planned), which
+  objects got a plan (O,), and the planned positions (O, T, 2) in the world frame.
   """
   feats = features_lib.scene_features(state, cfg.features)
   batched = jax.tree_util.tree_map(lambda a: a[None], feats)
   cond = planner.condition(models.encoder, models.stats, batched, cfg)
-  guide = _guide(models, state, batched, cond, cfg, policy.guidance, jnp.asarray(adversary, jnp.int32))
+  if road is None:
+    road = guidance_lib.road_of(state, policy.guidance)
+  guide = _guide(models, state, batched, cond, cfg, policy.guidance, jnp.asarray(adversary, jnp.int32), road)
   steps = policy.guidance.guide_steps(policy.ddim_steps) if guide is not None else None
   init_noise = None if noise is None else noise[feats.agent_index][None]   # (1, A, d)
   y0 = planner.sample(models.denoiser, cond, cfg, rng, policy.ddim_steps, policy.eta,
                       prior_init=policy.prior_init, guide=guide, guide_steps=steps,
                       init_noise=init_noise)
   actions = dynamics.clip_action(latent.decode(y0[0], models.stats), cfg.kinematics)  # (A, T, 2)
+  states = dynamics.rollout(latent.initial_states(cond.speed[0]), actions, cfg.kinematics.dt)
+  path, _ = features_lib.agent_to_world(states[..., :2], states[..., 2], feats)        # (A, T, 2)
   num_objects = state.object_metadata.ids.shape[-1]
   per_object = features_lib.scatter_to_objects(actions, feats, num_objects)
   planned = features_lib.scatter_to_objects(feats.agent_valid, feats, num_objects, fill=False)
-  return per_object, planned.astype(bool)
+  return per_object, planned.astype(bool), features_lib.scatter_to_objects(path, feats, num_objects)
+
+
+EXECUTE = ("actions", "track")
+
+
+def _track(state: SimulatorState, path: Array, age: Array, steps: int, cfg: Config) -> Array:
+  """(O, 2) pure-pursuit actions from each object's simulated state towards the
+  plan's world-frame path (O, T, 2) `steps` points past step `age` (clamped
+  to the plan's end)."""
+  cur = state.current_sim_trajectory
+  last = path.shape[1] - 1
+  at = lambda k: jnp.take(path, jnp.clip(age + k, 0, last), axis=1)          # (O, 2)
+  xy, yaw = cur.xy[:, 0], cur.yaw[:, 0]
+  speed = jnp.sum(cur.vel_xy[:, 0] * geometry.unit(yaw), -1)
+  local = lambda p: geometry.to_local(p, xy, yaw)
+  action = dynamics.pure_pursuit(local(at(steps - 1)), local(at(steps - 2)), speed, steps, cfg.kinematics.dt)
+  return dynamics.clip_action(action, cfg.kinematics)
 
 
 def pursuer_of(state: SimulatorState, cfg: Config, g: guidance_lib.GuidanceConfig) -> Array:
@@ -139,29 +174,38 @@ def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
   the rollout for batches."""
   if policy.replan_every < 1 or policy.replan_every > cfg.encoder.horizon:
     raise ValueError(f"replan_every must be in [1, {cfg.encoder.horizon}], got {policy.replan_every}")
+  if policy.execute not in EXECUTE:
+    raise ValueError(f"execute must be one of {EXECUTE}, got {policy.execute!r}")
+  if not 2 <= policy.track_steps <= cfg.encoder.horizon:
+    raise ValueError(f"track_steps must be in [2, {cfg.encoder.horizon}], got {policy.track_steps}")
   policy.guidance.validate()
 
   def init(rng, state):
     num_objects = state.object_metadata.ids.shape[-1]
     return PlanState(controlled=reactive_set(state, cfg),
                      plan=jnp.zeros((num_objects, cfg.encoder.horizon, 2), jnp.float32),
+                     path=jnp.zeros((num_objects, cfg.encoder.horizon, 2), jnp.float32),
                      plan_valid=jnp.zeros((num_objects,), bool),
                      age=jnp.asarray(policy.replan_every, jnp.int32),   # plan at the first call
                      adversary=pursuer_of(state, cfg, policy.guidance),
-                     noise=jax.random.normal(jax.random.fold_in(rng, 1), (num_objects, cfg.diffusion.latent_dim)))
+                     noise=jax.random.normal(jax.random.fold_in(rng, 1), (num_objects, cfg.diffusion.latent_dim)),
+                     road=guidance_lib.road_of(state, policy.guidance))
 
   def select_action(models, state, ps: PlanState, rng):
     replan = ps.age >= policy.replan_every
-    plan, plan_valid = jax.lax.cond(
+    plan, plan_valid, path = jax.lax.cond(
         replan, lambda: plan_actions(models, state, cfg, policy, rng, ps.adversary,
-                                     ps.noise if policy.consistent_noise else None),
-        lambda: (ps.plan, ps.plan_valid))
+                                     ps.noise if policy.consistent_noise else None, ps.road),
+        lambda: (ps.plan, ps.plan_valid, ps.path))
     age = jnp.where(replan, 0, ps.age)
-    now = jnp.take(plan, age, axis=1)                                    # (O, 2)
+    if policy.execute == "track":
+      now = _track(state, path, age, policy.track_steps, cfg)
+    else:
+      now = jnp.take(plan, age, axis=1)                                  # (O, 2)
     alive = state.current_sim_trajectory.valid[..., 0]
     valid = ps.controlled & plan_valid & alive
     action = Action(data=jnp.where(valid[:, None], now, 0.0), valid=valid[:, None])
-    new = ps.replace(plan=plan, plan_valid=plan_valid, age=age + 1)
+    new = ps.replace(plan=plan, plan_valid=plan_valid, path=path, age=age + 1)
     return ActorOutput(actor_state=new, action=action, is_controlled=ps.controlled)
 
   name = "pcdiff" if policy.prior_init else "pcdiff-noprior"
@@ -169,11 +213,15 @@ def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
 
 
 def step(state: SimulatorState, models: Models, cfg: Config, rng: Array,
-         policy: PolicyConfig = PolicyConfig()) -> tuple[Action, Array]:
+         policy: PolicyConfig = PolicyConfig(), road: Optional[RoadField] = None) -> tuple[Action, Array]:
   """One replanning for one scenario: the first planned action of the reactive
-  agents (Action (O, 2), valid (O, 1)) and the controlled mask (O,)."""
+  agents (Action (O, 2), valid (O, 1)) and the controlled mask (O,). Under
+  guidance, pass road=`guidance.road_of(state, policy.guidance)` made once per
+  scenario to avoid rebuilding the road field at every call."""
   controlled = reactive_set(state, cfg)
-  plan, planned = plan_actions(models, state, cfg, policy, rng, pursuer_of(state, cfg, policy.guidance))
+  plan, planned, path = plan_actions(models, state, cfg, policy, rng,
+                                     pursuer_of(state, cfg, policy.guidance), road=road)
+  now = _track(state, path, 0, policy.track_steps, cfg) if policy.execute == "track" else plan[:, 0]
   valid = controlled & planned & state.current_sim_trajectory.valid[..., 0]
-  return Action(data=jnp.where(valid[:, None], plan[:, 0], 0.0), valid=valid[:, None]), controlled
+  return Action(data=jnp.where(valid[:, None], now, 0.0), valid=valid[:, None]), controlled
 

@@ -9,9 +9,11 @@ import numpy as np
 import pytest
 
 from pcdiff_jax.model import guidance as G
+from pcdiff_jax.sim import road_field
 
 T = 40
-CFG = G.GuidanceConfig(mode="objective", eta=0.5, inner_steps=5, coll_horizon=T, map_stride=2)
+# The toy latent is a shift in metres: steps of at most 1 m.
+CFG = G.GuidanceConfig(mode="objective", eta=0.5, inner_steps=5, coll_horizon=T, map_stride=2, max_step=1.0)
 
 
 def _agents(num=3, valid=None, pursuer=-1, evader=-1):
@@ -28,7 +30,7 @@ def _road(half_width=4.0, empty=False):
   xy = jnp.concatenate([lower, upper])
   d = jnp.concatenate([jnp.tile(jnp.array([[1.0, 0.0]]), (201, 1)), jnp.tile(jnp.array([[-1.0, 0.0]]), (201, 1))])
   ids = jnp.concatenate([jnp.zeros(201, jnp.int32), jnp.ones(201, jnp.int32)])
-  return G.Edges(xy=xy, dir=d, ids=ids, valid=jnp.full(402, not empty))
+  return road_field.from_edges(xy, d, ids, jnp.full(402, not empty), jnp.zeros(2), size=201, spacing=1.0)
 
 
 def _poses(base_xy):
@@ -120,3 +122,34 @@ def test_guide_steps_are_the_last_ones_and_bad_configs_are_refused():
     G.GuidanceConfig(mode="magic").validate()
   with pytest.raises(ValueError, match="inner_steps"):
     G.GuidanceConfig(inner_steps=0).validate()
+
+
+def test_agent_objective_is_one_row_of_the_objective():
+  base = _straight([-1.5, 1.5, -3.5], [10.0, 10.0, 8.0], [0.0, 0.0, -3.0])   # overlaps and an excursion
+  agents, road = _agents(valid=[True, True, True]), _road()
+  xy, yaw = _poses(base)(jnp.array([[0.0, 1.0], [0.0, 0.0], [0.0, 0.0]]))
+  full = G.objective(xy, yaw, agents, road, CFG)
+  assert float(jnp.min(full)) > 0
+  for slot in range(3):
+    np.testing.assert_allclose(float(G.agent_objective(xy, yaw, agents, road, CFG, jnp.int32(slot))),
+                               float(full[slot]), rtol=1e-5)
+  assert float(G.agent_objective(xy, yaw, agents, road, CFG, jnp.int32(-1))) == 0.0
+
+
+def test_collision_cost_over_nearest_neighbours_equals_all_pairs():
+  # 12 agents in a 3 x 4 block, packed so that each touches up to 8 others
+  # (sides and diagonals); neighbours are ranked by centre distance, which puts
+  # a non-touching agent ahead of touching diagonal ones here, so k = 10.
+  grid = np.stack(np.meshgrid(np.arange(3) * 3.5, np.arange(4) * 1.8, indexing="ij"), -1).reshape(-1, 2)
+  t = jnp.arange(T) * 0.1
+  xy = jnp.asarray(grid, jnp.float32)[:, None, :] + jnp.stack([8.0 * t, 0.0 * t], -1)
+  yaw = jnp.zeros(xy.shape[:-1])
+  agents = _agents(12, valid=[True] * 11 + [False])
+  c = G._circles(xy, yaw, agents, CFG)
+  r = agents.width / 2
+  pair = agents.valid[:, None] & agents.valid[None, :] & ~jnp.eye(12, dtype=bool)
+  brute = jnp.sum(jnp.where(pair, G._overlaps(c, c, r, r, CFG.coll_margin), 0.0), -1)
+  assert float(jnp.min(brute[:11])) > 0 and float(brute[11]) == 0.0
+  for k in (10, 11):
+    near = G.collision_cost(xy, yaw, agents, dataclasses.replace(CFG, coll_neighbors=k))
+    np.testing.assert_allclose(np.asarray(near), np.asarray(brute), rtol=1e-5)

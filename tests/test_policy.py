@@ -12,7 +12,7 @@ from pcdiff_jax import evaluation, policy
 from pcdiff_jax.config import get_config
 from pcdiff_jax.model import denoiser as denoiser_lib
 from pcdiff_jax.model import encoder, planner
-from pcdiff_jax.sim import env
+from pcdiff_jax.sim import env, geometry
 from pcdiff_jax.training import data as data_lib
 from pcdiff_jax.training import diffusion_stage
 
@@ -106,23 +106,24 @@ def test_guided_closed_loop_runs_and_changes_the_plans(models):
   states = _scenes([(10.0, 8.0, 0.0, 5.0)])
   rngs = jax.random.split(jax.random.key(0), 1)
   cfg = evaluation.EvalConfig(num_steps=3)
-  finals = {}
+  finals, ends = {}, {}
   for mode in ("none", "objective", "adversarial"):
-    g = GuidanceConfig(mode=mode, eta=0.5, w_pursue=10.0)
+    g = GuidanceConfig(mode=mode, eta=0.5, w_pursue=10.0, field_size=64, max_edge_points=512)
     actor = policy.actor(CFG, policy.PolicyConfig(ddim_steps=2, guidance=g))
-    final = evaluation.make_rollout_fn(actor, cfg)(states, rngs, models)
-    finals[mode] = final.sim_trajectory
+    ends[mode] = evaluation.make_rollout_fn(actor, cfg)(states, rngs, models)
+    finals[mode] = ends[mode].sim_trajectory
     assert bool(jnp.all(jnp.isfinite(finals[mode].x[:, :, 11:14])))
-  # Adversarial runs are scored for the ego-adversary pair too.
+  # Adversarial runs are scored for the ego-adversary pair, and unguided ones on request.
   from pcdiff_jax import metrics as metrics_lib
-  score_cfg = evaluation.EvalConfig(num_steps=3, guidance=g, metrics=CFG.metrics)
-  scores = evaluation.make_score_fn(score_cfg)(final)
-  summary = metrics_lib.aggregate(jax.tree_util.tree_map(lambda a: np.asarray(a)[:, None], scores))
-  assert summary["num_pairs"] == 1 and np.isfinite(summary["min_distance"])
+  for mode, extra in (("adversarial", {"guidance": g}), ("none", {"score_adversary": True})):
+    score_cfg = evaluation.EvalConfig(num_steps=3, metrics=CFG.metrics, **extra)
+    scores = evaluation.make_score_fn(score_cfg)(ends[mode])
+    summary = metrics_lib.aggregate(jax.tree_util.tree_map(lambda a: np.asarray(a)[:, None], scores))
+    assert summary["num_pairs"] == 1 and np.isfinite(summary["min_distance"])
   for mode in ("objective", "adversarial"):
     assert not np.allclose(np.asarray(finals[mode].x[:, 1:, 11:14]), np.asarray(finals["none"].x[:, 1:, 11:14]))
   state = env.reset(make_scene(num_steps=91, speeds=(10.0, 8.0, 0.0, 5.0)))
-  ps = policy.actor(CFG, policy.PolicyConfig(guidance=GuidanceConfig(mode="adversarial"))).init(
+  ps = policy.actor(CFG, policy.PolicyConfig(guidance=GuidanceConfig(mode="adversarial", field_size=32))).init(
       jax.random.key(0), state)
   assert int(ps.adversary) in (1, 2, 3)                            # a reactive vehicle, not the SDC
   with pytest.raises(ValueError, match="mode"):
@@ -152,3 +153,26 @@ def test_controlled_agents_are_the_scored_agents(real_state):
   scored = np.asarray(metrics_lib.evaluated_agents(state, 10, cfg.metrics.max_reactive_agents))
   assert controlled.sum() == 64
   np.testing.assert_array_equal(controlled, scored)
+
+
+def test_track_execution_follows_the_planned_path(models):
+  state = env.reset(make_scene(num_steps=91))
+  cur = state.current_sim_trajectory
+  t = (jnp.arange(CFG.encoder.horizon) + 1.0) * 0.1
+  ahead = cur.xy[:, 0][:, None] + cur.vel_xy[:, 0][:, None] * t[None, :, None]       # keep going
+  valid = np.asarray(cur.valid[:, 0])
+  np.testing.assert_allclose(np.asarray(policy._track(state, ahead, 0, 5, CFG))[valid], 0.0, atol=1e-3)
+  left = geometry.unit(cur.yaw[:, 0] + np.pi / 2)
+  bend = ahead + 0.5 * t[None, :, None] ** 2 * left[:, None]                         # drifting left
+  moving = valid & (np.linalg.norm(np.asarray(cur.vel_xy[:, 0]), axis=-1) > 1.0)
+  assert (np.asarray(policy._track(state, bend, 0, 5, CFG))[moving, 1] > 0).all()
+  act = policy.actor(CFG, policy.PolicyConfig(ddim_steps=1, replan_every=2, execute="track"))
+  ps = act.init(jax.random.key(0), state)
+  for k in range(3):
+    out = jax.jit(act.select_action)(models, state, ps, jax.random.key(k))
+    ps = out.actor_state
+    assert bool(jnp.all(jnp.isfinite(out.action.data)))
+    state = env.step(state, out.action, out.is_controlled)
+  assert float(jnp.abs(ps.path[1:]).sum()) > 0                    # world-frame plan kept
+  with pytest.raises(ValueError, match="execute"):
+    policy.actor(CFG, policy.PolicyConfig(execute="teleport"))

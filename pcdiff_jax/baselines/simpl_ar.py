@@ -54,12 +54,7 @@ def tracking_action(path: Array, speed: Array, cfg: SimplARConfig, dt: float = 0
   without its first-step artefact.
   """
   j = cfg.track_steps
-  target = path[:, j - 1]                                                   # (A, 2)
-  v_target = jnp.linalg.norm(path[:, j - 1] - path[:, j - 2], axis=-1) / dt
-  accel = (v_target - speed) / (j * dt)
-  dist2 = jnp.sum(target ** 2, -1)
-  curvature = 2.0 * target[:, 1] / jnp.maximum(dist2, 1e-2)
-  return jnp.stack([accel, jnp.maximum(speed, 0.0) * curvature], -1)
+  return dynamics.pure_pursuit(path[:, j - 1], path[:, j - 2], speed, j, dt)
 
 
 def collision_counts(xy: Array, yaw: Array, length: Array, width: Array, valid: Array) -> Array:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import glob as globlib
+import itertools
 import logging
 import os
 from typing import Iterable, Iterator, Optional, Sequence, Union
@@ -421,7 +422,8 @@ def _stack(items: list[dict]) -> dict:
 def iterate(paths, batch_size: Optional[int] = None, max_num_objects: int = 128,
             max_num_rg_points: int = 30000, max_num_traffic_lights: int = 16,
             on_error: str = "raise", with_meta: bool = False, drop_remainder: bool = False,
-            to_jax: bool = True, skipped: Optional[list] = None) -> Iterator:
+            to_jax: bool = True, skipped: Optional[list] = None,
+            max_scenarios: Optional[int] = None) -> Iterator:
   """Reads WOMD motion TFRecords into padded `SimulatorState`s.
 
   Args:
@@ -433,12 +435,15 @@ def iterate(paths, batch_size: Optional[int] = None, max_num_objects: int = 128,
     on_error: 'raise' (default) or 'skip' bad records with a warning.
     with_meta: also yield a `ScenarioMeta` (scenario ids, file, record index).
     skipped: a list that collects the errors of skipped records.
+    max_scenarios: stop after this many scenarios (None: all).
   Yields:
     SimulatorState, or (SimulatorState, ScenarioMeta) when with_meta.
   """
   cfg = LoaderConfig(max_num_objects=max_num_objects, max_num_rg_points=max_num_rg_points,
                      max_num_traffic_lights=max_num_traffic_lights)
   source = iterate_numpy(paths, cfg, on_error=on_error, skipped=skipped)
+  if max_scenarios is not None:
+    source = itertools.islice(source, max_scenarios)
   if batch_size is None:
     for arrays, meta in source:
       state = numpy_to_state(arrays, to_jax=to_jax)

@@ -12,7 +12,8 @@ coincident agents and empty maps):
 
   J_map   vehicles' box corners against road edges (every `map_stride`-th
           step): mean of relu(signed distance + margin)^2; the signed
-          distance is Waymax's off-road test (positive = off road).
+          distance is Waymax's off-road test (positive = off road), read
+          from a grid computed once per scenario (`sim.road_field`).
   J_coll  3 circles per agent (rear, middle, front; radius width / 2) over
           the first `coll_horizon` steps: sum over other agents of
           relu(r_i + r_j + margin - distance)^2.
@@ -36,9 +37,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from pcdiff_jax.sim import geometry
+from pcdiff_jax.sim import geometry, road_field
 from pcdiff_jax.sim.datatypes import Array, ObjectType, SimulatorState
-from pcdiff_jax.sim.metrics import road_edges
+from pcdiff_jax.sim.road_field import RoadField
 
 MODES = ("none", "objective", "adversarial")
 _EPS = 1e-6
@@ -54,39 +55,38 @@ class GuidanceConfig:
   w_coll: float = 1.0
   w_pursue: float = 10.0
   eta: float = 0.05
+  max_step: float = 10.0           # latent units per agent and inner step (prior sigma norm ~ 9)
   inner_steps: int = 2
   guided_steps: int = 2
   ibr_rounds: int = 2
   coll_horizon: int = 30           # steps (3 s)
+  coll_neighbors: int = 8          # agents each agent's J_coll looks at
   map_stride: int = 4
   map_margin: float = 0.3          # m
   coll_margin: float = 0.3         # m
   pursuit_temperature: float = 1.0  # m, of the soft minimum
-  max_edge_points: int = 1024
+  field_size: int = 128            # cells per side of the road field (+-127 m around the SDC)
+  field_spacing: float = 2.0       # m; bilinear is exact across straight edges
+  max_edge_points: int = 4096      # road-edge samples the field is built from
   adversary: int = -1
 
   def validate(self) -> None:
     if self.mode not in MODES:
       raise ValueError(f"guidance mode must be one of {MODES}, got {self.mode!r}")
     for name in ("inner_steps", "guided_steps", "ibr_rounds", "coll_horizon", "map_stride",
-                 "max_edge_points"):
+                 "max_edge_points", "field_size", "coll_neighbors"):
       if getattr(self, name) < 1:
         raise ValueError(f"guidance {name} must be >= 1, got {getattr(self, name)}")
+    if self.field_spacing <= 0:
+      raise ValueError(f"guidance field_spacing must be > 0, got {self.field_spacing}")
+    if self.max_step <= 0:
+      raise ValueError(f"guidance max_step must be > 0, got {self.max_step}")
     if self.eta < 0:
       raise ValueError(f"guidance eta must be >= 0, got {self.eta}")
 
   def guide_steps(self, num_sample_steps: int) -> np.ndarray:
     """(n,) bool: the last `guided_steps` of n DDIM steps."""
     return np.arange(num_sample_steps) >= num_sample_steps - self.guided_steps
-
-
-@struct.dataclass
-class Edges:
-  """Road-edge samples in the scene frame: xy, dir (..., E, 2); ids, valid (..., E)."""
-  xy: Array
-  dir: Array
-  ids: Array
-  valid: Array
 
 
 @struct.dataclass
@@ -101,47 +101,102 @@ class Agents:
   evader: Array
 
 
-def scene_edges(state: SimulatorState, scene_xy: Array, scene_yaw: Array, max_points: int) -> Edges:
-  """The `max_points` road-edge samples nearest the scene origin, in the scene
-  frame. One scene."""
-  xy, direction, ids, valid = road_edges(state.roadgraph_points, scene_xy, max_points)
-  local = geometry.to_local(xy, scene_xy, scene_yaw)
-  c, s = jnp.cos(scene_yaw), jnp.sin(scene_yaw)
-  local_dir = jnp.stack([c * direction[..., 0] + s * direction[..., 1],
-                         -s * direction[..., 0] + c * direction[..., 1]], -1)
-  return Edges(xy=local, dir=local_dir, ids=ids, valid=valid)
-
-
 # ----------------------------------------------------------------------------
 # Costs: xy (..., A, T, 2), yaw (..., A, T) in the scene frame.
 
 
-def map_cost(xy: Array, yaw: Array, agents: Agents, edges: Edges, cfg: GuidanceConfig) -> Array:
-  """(..., A) mean squared excursion of the vehicles' box corners past the road edge."""
+def map_cost(xy: Array, yaw: Array, agents: Agents, road: RoadField, cfg: GuidanceConfig) -> Array:
+  """(..., A) mean squared excursion of the vehicles' box corners past the
+  road edge; road: the scene's field, queried in the frame of xy."""
   xy, yaw = xy[..., ::cfg.map_stride, :], yaw[..., ::cfg.map_stride]
   corners = geometry.box_corners(xy[..., 0], xy[..., 1], yaw, agents.length[..., None],
                                  agents.width[..., None])                    # (..., A, T', 4, 2)
   shape = corners.shape
   flat = corners.reshape(shape[:-4] + (-1, 2))
-  sd = geometry.signed_distance_to_road_edges(flat, edges.xy, edges.dir, edges.ids, edges.valid)
+  sd = road_field.lookup(road, flat)
   excess = jnp.maximum(sd + cfg.map_margin, 0.0).reshape(shape[:-1])
   per_agent = jnp.mean(excess ** 2, axis=(-1, -2))
   return jnp.where(agents.valid & agents.vehicle, per_agent, 0.0)
 
 
-def collision_cost(xy: Array, yaw: Array, agents: Agents, cfg: GuidanceConfig) -> Array:
-  """(..., A) squared circle overlaps with every other valid agent over the near term."""
-  h = cfg.coll_horizon
-  c = geometry.box_circles(xy[..., :h, :], yaw[..., :h], agents.length[..., None],
-                           agents.width[..., None])                       # (..., A, H, 3, 2)
-  r = agents.width / 2.0
-  diff = c[..., :, None, :, :, None, :] - c[..., None, :, :, None, :, :]   # (..., A, A, H, 3, 3, 2)
+def _overlaps(ci: Array, c: Array, ri: Array, r: Array, margin: float) -> Array:
+  """(..., I, J) summed squared overlaps of circles ci (..., I, H, 3, 2) radius
+  ri (..., I) with circles c (..., J, H, 3, 2) radius r (..., J)."""
+  diff = ci[..., :, None, :, :, None, :] - c[..., None, :, :, None, :, :]  # (..., I, J, H, 3, 3, 2)
   dist = jnp.sqrt(jnp.sum(diff ** 2, -1) + _EPS)
-  reach = (r[..., :, None] + r[..., None, :] + cfg.coll_margin)[..., None, None, None]
-  overlap = jnp.sum(jnp.maximum(reach - dist, 0.0) ** 2, axis=(-1, -2, -3))  # (..., A, A)
+  reach = (ri[..., :, None] + r[..., None, :] + margin)[..., None, None, None]
+  return jnp.sum(jnp.maximum(reach - dist, 0.0) ** 2, axis=(-1, -2, -3))
+
+
+def _gather_agents(a: Array, index: Array) -> Array:
+  """a (..., A, *rest) gathered at index (..., A, k) -> (..., A, k, *rest)."""
+  batch = a.shape[:-4]
+  flat_a = a.reshape((-1,) + a.shape[len(batch):])
+  flat_i = index.reshape((-1,) + index.shape[len(batch):])
+  out = jax.vmap(lambda x, i: x[i])(flat_a, flat_i)
+  return out.reshape(batch + out.shape[1:])
+
+
+def _pair_overlaps(c: Array, near_c: Array, r: Array, near_r: Array, margin: float) -> Array:
+  """(..., A, k) summed squared overlaps of each agent's circles c (..., A, H, 3, 2)
+  with those of its k neighbours near_c (..., A, k, H, 3, 2)."""
+  diff = c[..., :, None, :, :, None, :] - near_c[..., :, :, :, None, :, :]   # (..., A, k, H, 3, 3, 2)
+  dist = jnp.sqrt(jnp.sum(diff ** 2, -1) + _EPS)
+  reach = (r[..., :, None] + near_r + margin)[..., None, None, None]
+  return jnp.sum(jnp.maximum(reach - dist, 0.0) ** 2, axis=(-1, -2, -3))
+
+
+def _circles(xy: Array, yaw: Array, agents: Agents, cfg: GuidanceConfig) -> Array:
+  """(..., A, H, 3, 2) circle centres over the first coll_horizon steps."""
+  h = cfg.coll_horizon
+  return geometry.box_circles(xy[..., :h, :], yaw[..., :h], agents.length[..., None],
+                              agents.width[..., None])
+
+
+def collision_cost(xy: Array, yaw: Array, agents: Agents, cfg: GuidanceConfig) -> Array:
+  """(..., A) squared circle overlaps with the other valid agents over the near
+  term. Only each agent's `coll_neighbors` nearest agents (closest approach
+  of the box centres over the horizon, no gradient) are scored: O(A k), not
+  O(A^2), and the same value whenever an agent touches at most k others."""
+  c = _circles(xy, yaw, agents, cfg)                                       # (..., A, H, 3, 2)
   num = agents.valid.shape[-1]
+  k = min(cfg.coll_neighbors, num - 1)
+  if k < 1:
+    return jnp.zeros_like(agents.length)
+  centre = jax.lax.stop_gradient(c[..., 1, :])                             # (..., A, H, 2)
+  closest = jnp.min(jnp.sum((centre[..., :, None, :, :] - centre[..., None, :, :, :]) ** 2, -1), -1)
   pair = agents.valid[..., :, None] & agents.valid[..., None, :] & ~jnp.eye(num, dtype=bool)
-  return jnp.sum(jnp.where(pair, overlap, 0.0), -1)
+  _, near = jax.lax.top_k(-jnp.where(pair, closest, jnp.inf), k)           # (..., A, k)
+  near_ok = jnp.take_along_axis(pair, near, axis=-1)
+  near_c = _gather_agents(c, near)                                         # (..., A, k, H, 3, 2)
+  r = agents.width / 2.0
+  near_r = jnp.take_along_axis(r[..., None, :], near, axis=-1)             # (..., A, k)
+  overlap = _pair_overlaps(c, near_c, r, near_r, cfg.coll_margin)          # (..., A, k)
+  return jnp.sum(jnp.where(near_ok, overlap, 0.0), -1)
+
+
+def _take(a: Array, slot: Array, axis_from_end: int) -> Array:
+  """a[..., slot, <axis_from_end - 1 trailing dims>] keeping the slot axis (size 1)."""
+  index = jnp.maximum(slot, 0).reshape(slot.shape + (1,) * axis_from_end)
+  return jnp.take_along_axis(a, index, axis=-axis_from_end)
+
+
+def agent_objective(xy: Array, yaw: Array, agents: Agents, road: RoadField, cfg: GuidanceConfig,
+                    slot: Array) -> Array:
+  """(...,) the objective of one agent slot (...,) alone: its J_map and its
+  overlaps with every other valid agent. Equals objective(...)[..., slot]
+  at O(A) instead of O(A^2) cost (the evader's best response)."""
+  one = lambda a, k: _take(a, slot, k)
+  mine = Agents(length=one(agents.length, 1), width=one(agents.width, 1), valid=one(agents.valid, 1),
+                vehicle=one(agents.vehicle, 1), pursuer=agents.pursuer, evader=agents.evader)
+  own_xy, own_yaw = one(xy, 3), one(yaw, 2)
+  own_map = map_cost(own_xy, own_yaw, mine, road, cfg)[..., 0]
+  c = _circles(xy, yaw, agents, cfg)
+  overlap = _overlaps(_circles(own_xy, own_yaw, mine, cfg), c, mine.width / 2.0, agents.width / 2.0,
+                      cfg.coll_margin)[..., 0, :]                               # (..., A)
+  others = agents.valid & (jnp.arange(agents.valid.shape[-1]) != slot[..., None]) & mine.valid
+  own_coll = jnp.sum(jnp.where(others, overlap, 0.0), -1)
+  return jnp.where((slot >= 0) & mine.valid[..., 0], cfg.w_map * own_map + cfg.w_coll * own_coll, 0.0)
 
 
 def pursuit_cost(xy: Array, agents: Agents, cfg: GuidanceConfig) -> Array:
@@ -156,9 +211,9 @@ def pursuit_cost(xy: Array, agents: Agents, cfg: GuidanceConfig) -> Array:
   return jnp.where(has_pair, soft_min, 0.0)
 
 
-def objective(xy: Array, yaw: Array, agents: Agents, edges: Edges, cfg: GuidanceConfig) -> Array:
+def objective(xy: Array, yaw: Array, agents: Agents, road: RoadField, cfg: GuidanceConfig) -> Array:
   """(..., A) per-agent objective w_map J_map + w_coll J_coll."""
-  return (cfg.w_map * map_cost(xy, yaw, agents, edges, cfg)
+  return (cfg.w_map * map_cost(xy, yaw, agents, road, cfg)
           + cfg.w_coll * collision_cost(xy, yaw, agents, cfg))
 
 
@@ -169,20 +224,25 @@ PoseFn = Callable[[Array], tuple[Array, Array]]   # y0 (..., A, d) -> xy (..., A
 
 
 def _descend(cost: Callable[[Array], Array], y: Array, mask: Array, cfg: GuidanceConfig) -> Array:
-  """`inner_steps` steps of y <- y - eta grad cost, on the agents of mask (..., A) only."""
+  """`inner_steps` steps of y <- y - eta grad cost, on the agents of mask (..., A)
+  only; each agent's step is clipped to norm max_step (a trust region: the
+  squared overlaps of a deep collision have gradients hundreds of times those
+  of a slight one, and an unclipped step would throw the agent far away)."""
   def body(y, _):
     g = jax.grad(cost)(y)
     g = jnp.where(jnp.isfinite(g), g, 0.0)
-    return y - cfg.eta * jnp.where(mask[..., None], g, 0.0), None
+    step = cfg.eta * jnp.where(mask[..., None], g, 0.0)
+    norm = jnp.sqrt(jnp.sum(step ** 2, -1, keepdims=True) + _EPS)
+    return y - step * jnp.minimum(1.0, cfg.max_step / norm), None
   y, _ = jax.lax.scan(body, y, None, length=cfg.inner_steps)
   return y
 
 
-def objective_guide(poses: PoseFn, agents: Agents, edges: Edges, cfg: GuidanceConfig):
+def objective_guide(poses: PoseFn, agents: Agents, road: RoadField, cfg: GuidanceConfig):
   """guide(y0, y_s, s, i) -> y0 after objective steps for every valid agent."""
   def total(y):
     xy, yaw = poses(y)
-    return jnp.sum(objective(xy, yaw, agents, edges, cfg))
+    return jnp.sum(objective(xy, yaw, agents, road, cfg))
 
   def guide(y0, y_s, s, i):
     del y_s, s, i
@@ -195,7 +255,7 @@ def _slot_mask(slot: Array, num: int) -> Array:
   return (jnp.arange(num) == slot[..., None]) & (slot[..., None] >= 0)
 
 
-def adversarial_guide(poses: PoseFn, agents: Agents, edges: Edges, cfg: GuidanceConfig):
+def adversarial_guide(poses: PoseFn, agents: Agents, road: RoadField, cfg: GuidanceConfig):
   """guide(y0, ...) -> y0 after `ibr_rounds` rounds of pursuer, evader and
   objective best responses (each with its own decode + rollout)."""
   num = agents.valid.shape[-1]
@@ -203,19 +263,23 @@ def adversarial_guide(poses: PoseFn, agents: Agents, edges: Edges, cfg: Guidance
   evader = _slot_mask(agents.evader, num) & agents.valid
   others = agents.valid & ~pursuer & ~evader
 
+  # The pursuer keeps to the road (J_map, no collision term: it is meant to
+  # hit the evader); the evader keeps its full objective.
+  map_only = dataclasses.replace(cfg, w_coll=0.0)
+
   def pursue(y):
     xy, yaw = poses(y)
-    own_map = jnp.where(pursuer, map_cost(xy, yaw, agents, edges, cfg), 0.0)
-    return jnp.sum(cfg.w_pursue * pursuit_cost(xy, agents, cfg)) + cfg.w_map * jnp.sum(own_map)
+    own = agent_objective(xy, yaw, agents, road, map_only, agents.pursuer)
+    return jnp.sum(cfg.w_pursue * pursuit_cost(xy, agents, cfg) + own)
 
   def evade(y):
     xy, yaw = poses(y)
-    own = jnp.where(evader, objective(xy, yaw, agents, edges, cfg), 0.0)
-    return -jnp.sum(cfg.w_pursue * pursuit_cost(xy, agents, cfg)) + jnp.sum(own)
+    own = agent_objective(xy, yaw, agents, road, cfg, agents.evader)
+    return jnp.sum(-cfg.w_pursue * pursuit_cost(xy, agents, cfg) + own)
 
   def rest(y):
     xy, yaw = poses(y)
-    return jnp.sum(objective(xy, yaw, agents, edges, cfg))
+    return jnp.sum(objective(xy, yaw, agents, road, cfg))
 
   def guide(y0, y_s, s, i):
     del y_s, s, i
@@ -228,13 +292,25 @@ def adversarial_guide(poses: PoseFn, agents: Agents, edges: Edges, cfg: Guidance
   return guide
 
 
-def make_guide(poses: PoseFn, agents: Agents, edges: Edges, cfg: GuidanceConfig):
+def make_guide(poses: PoseFn, agents: Agents, road: RoadField, cfg: GuidanceConfig):
   """The guide of cfg.mode (None for 'none')."""
   if cfg.mode == "objective":
-    return objective_guide(poses, agents, edges, cfg)
+    return objective_guide(poses, agents, road, cfg)
   if cfg.mode == "adversarial":
-    return adversarial_guide(poses, agents, edges, cfg)
+    return adversarial_guide(poses, agents, road, cfg)
   return None
+
+
+def road_of(state: SimulatorState, cfg: GuidanceConfig) -> RoadField:
+  """The scene's road field around the SDC at the current step (a 2 x 2
+  placeholder without guidance, so the actor state keeps one structure)."""
+  size = cfg.field_size if cfg.mode != "none" else 2
+  sdc = jnp.argmax(state.object_metadata.is_sdc)
+  center = state.current_sim_trajectory.xy[sdc, 0]
+  if cfg.mode == "none":
+    return road_field.from_edges(jnp.zeros((1, 2)), jnp.zeros((1, 2)), jnp.zeros((1,), jnp.int32),
+                                 jnp.zeros((1,), bool), center, size, cfg.field_spacing)
+  return road_field.build(state.roadgraph_points, center, size, cfg.field_spacing, cfg.max_edge_points)
 
 
 def most_threatening(state: SimulatorState, candidates: Array, horizon_s: float = 3.0) -> Array:

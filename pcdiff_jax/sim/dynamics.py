@@ -78,6 +78,22 @@ def _tracking_action(state: Array, target_xy: Array, cfg: KinematicsConfig) -> A
   return clip_action(action, cfg)
 
 
+def pure_pursuit(target_xy: Array, before_xy: Array, speed: Array, steps: int, dt: float) -> Array:
+  """[a, psi_dot] (..., 2) that follow a path from [0, 0, 0, speed]: reach the
+  path's speed at its point `steps` ahead within those steps, and steer on the
+  circle through the origin, tangent to the heading, that passes through it.
+
+  target_xy (..., 2): the path's point `steps` ahead, in the agent's frame;
+  before_xy (..., 2): the point one step before it (their gap sets the speed).
+  Unclipped (see `clip_action`).
+  """
+  v_target = jnp.sqrt(jnp.sum((target_xy - before_xy) ** 2, -1) + 1e-12) / dt
+  accel = (v_target - speed) / (steps * dt)
+  dist2 = jnp.sum(target_xy ** 2, -1)
+  curvature = 2.0 * target_xy[..., 1] / jnp.maximum(dist2, 1e-2)
+  return jnp.stack([accel, jnp.maximum(speed, 0.0) * curvature], -1)
+
+
 def inverse(states: Array, valid: Array, cfg: KinematicsConfig = KinematicsConfig()) -> tuple[Array, Array]:
   """Inverse dynamics: actions that make f track logged positions.
 

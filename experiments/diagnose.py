@@ -1,0 +1,236 @@
+"""Closed-loop diagnostics behind docs/RESULTS.md ("why ours is not ahead").
+
+  python -m experiments.diagnose --checkpoint runs/cpu --scenarios runs/val20.tfrecord replay
+  python -m experiments.diagnose --checkpoint runs/cpu --scenarios runs/val20.tfrecord drift --method pcdiff
+  python -m experiments.diagnose --checkpoint runs/cpu --scenarios runs/val20.tfrecord first-action
+
+replay        executes one 8 s plan made at the rollout start, open loop, for
+              every reactive agent, and scores it like a closed-loop run:
+              `log` (the logged future through inverse dynamics), `log-latent`
+              (the same, projected on the PCA latent and decoded), `top1` (the
+              encoder's most likely proposal), `top1-latent` (its latent
+              projection), `oracle` (the proposal closest to the log). Tells
+              what the representation itself costs before any diffusion.
+drift         closed-loop rollout of a method; the controlled agents' offset
+              from their log in the log's own frame (lateral: left positive)
+              and heading error at 1, 2, 4, 6, 8 s.
+first-action  the first action [accel, yaw rate] of the plans the policy
+              makes at the rollout start, against the log's, for moving
+              vehicles (> 2 m/s): a mean yaw rate far from the log's is a
+              bias that 10 Hz replanning integrates into drift.
+"""
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pcdiff_jax import evaluation, metrics as metrics_lib, policy
+from pcdiff_jax.data import womd
+from pcdiff_jax.model import encoder, features as features_lib, latent, planner
+from pcdiff_jax.sim import dynamics, env
+from pcdiff_jax.sim.actors import Actor, ActorOutput
+from pcdiff_jax.sim.datatypes import Action, ObjectType
+
+PLANS = ("log", "log-latent", "top1", "top1-latent", "oracle")
+DRIFT_SECONDS = (1, 2, 4, 6, 8)
+
+
+def _scenes(path: str, num: int):
+  """The first `num` scenarios of path, stacked into one batch (B,)."""
+  states = list(itertools.islice(womd.iterate(path), num))
+  if not states:
+    raise SystemExit(f"{path}: no scenario could be read")
+  return jax.tree_util.tree_map(lambda *a: jnp.stack(a), *states), len(states)
+
+
+def _log_actions(state, horizon: int, cfg):
+  """(O, T, 2) actions that make f track each object's logged future from t, and (O, T) valid."""
+  t = state.timestep
+  s = jax.lax.dynamic_slice_in_dim(dynamics.states_from_trajectory(state.log_trajectory), t, horizon + 1, 1)
+  v = jax.lax.dynamic_slice_in_dim(state.log_trajectory.valid, t, horizon + 1, 1)
+  return dynamics.inverse(s, v, cfg.kinematics)
+
+
+def _plan(kind: str, models, cfg):
+  """state -> per-object actions (O, T, 2) and planned (O,) for a replay kind."""
+  def make(state):
+    feats = features_lib.scene_features(state, cfg.features)
+    num_objects = state.object_metadata.ids.shape[-1]
+    planned = features_lib.scatter_to_objects(feats.agent_valid, feats, num_objects, fill=False).astype(bool)
+    project = lambda a: dynamics.clip_action(latent.decode(latent.encode(a, models.stats), models.stats),
+                                             cfg.kinematics)
+    if kind in ("log", "log-latent"):
+      actions, _ = _log_actions(state, cfg.encoder.horizon, cfg)
+      return (project(actions) if kind == "log-latent" else actions), planned
+    out = encoder.apply(models.encoder, feats, cfg.encoder)
+    speed = planner.agent_speed(feats)
+    proposals = latent.actions_from_positions(out.trajectories, speed[:, None], cfg.kinematics)  # (A, K, T, 2)
+    if kind == "oracle":
+      start = latent.initial_states(jnp.broadcast_to(speed[:, None], proposals.shape[:2]))
+      states = dynamics.rollout(start, proposals, cfg.kinematics.dt)
+      xy, _ = features_lib.agent_to_world(states[..., :2], states[..., 2], feats)          # (A, K, T, 2)
+      t = state.timestep
+      future = jax.lax.dynamic_slice_in_dim(state.log_trajectory.xy, t + 1, cfg.encoder.horizon, 1)
+      valid = jax.lax.dynamic_slice_in_dim(state.log_trajectory.valid, t + 1, cfg.encoder.horizon, 1)
+      future, valid = future[feats.agent_index], valid[feats.agent_index]
+      error = jnp.sum(jnp.linalg.norm(xy - future[:, None], axis=-1) * valid[:, None], -1)
+      best = jnp.argmin(error, -1)
+    else:
+      best = jnp.argmax(out.probs, -1)
+    chosen = jnp.take_along_axis(proposals, best[:, None, None, None], 1)[:, 0]
+    if kind == "top1-latent":
+      chosen = project(chosen)
+    return features_lib.scatter_to_objects(chosen, feats, num_objects), planned
+  return make
+
+
+def _replay_actor(kind: str, models, cfg) -> Actor:
+  """Executes the plan made at `init` open loop (reactive agents; the rest follow the log)."""
+  make = _plan(kind, models, cfg)
+
+  def init(rng, state):
+    del rng
+    plan, planned = make(state)
+    return (policy.reactive_set(state, cfg), plan, planned, jnp.zeros((), jnp.int32))
+
+  def select_action(params, state, actor_state, rng):
+    del params, rng
+    controlled, plan, planned, age = actor_state
+    valid = controlled & planned & state.current_sim_trajectory.valid[..., 0]
+    now = jnp.take(plan, jnp.minimum(age, plan.shape[1] - 1), axis=1)
+    return ActorOutput(actor_state=(controlled, plan, planned, age + 1),
+                       action=Action(data=jnp.where(valid[:, None], now, 0.0), valid=valid[:, None]),
+                       is_controlled=controlled)
+  return Actor(select_action=select_action, init=init, name=f"replay-{kind}")
+
+
+def replay(args, models, cfg, batch, num) -> dict:
+  ecfg = evaluation.EvalConfig(method="log")
+  score = evaluation.make_score_fn(ecfg)
+  rngs = jax.random.split(jax.random.PRNGKey(args.seed), num)
+  rows = {}
+  for kind in args.plans.split(","):
+    if kind not in PLANS:
+      raise SystemExit(f"--plans: unknown plan {kind!r}; choose from {list(PLANS)}")
+    final = evaluation.make_rollout_fn(_replay_actor(kind, models, cfg), ecfg)(batch, rngs, None)
+    agg = metrics_lib.aggregate(jax.tree_util.tree_map(lambda a: np.asarray(a)[:, None], score(final)))
+    rows[kind] = {k: float(agg[k]) for k in ("collision_rate", "offroad_rate", "realism", "min_ade")}
+    print(f"| {kind} | " + " | ".join(f"{v:.3f}" for v in rows[kind].values()) + " |", flush=True)
+  return rows
+
+
+def drift(args, models, cfg, batch, num) -> dict:
+  del models
+  ecfg = evaluation.EvalConfig(method=args.method, checkpoint=args.checkpoint, replan_every=args.replan_every,
+                               ddim_steps=args.ddim_steps, consistent_noise=args.consistent_noise,
+                               execute=args.execute)
+  actor, params = evaluation.make_actor(ecfg)
+  rngs = jax.random.split(jax.random.PRNGKey(args.seed), num)
+  final = jax.device_get(evaluation.make_rollout_fn(actor, ecfg)(batch, rngs, params))
+  sim, log = final.sim_trajectory, final.log_trajectory
+  ok = np.asarray(sim.valid & log.valid) & np.asarray(final.object_metadata.is_controlled)[..., None]
+  yaw = np.asarray(log.yaw)
+  dx, dy = np.asarray(sim.x - log.x), np.asarray(sim.y - log.y)
+  lateral = -np.sin(yaw) * dx + np.cos(yaw) * dy
+  heading = (np.asarray(sim.yaw - log.yaw) + np.pi) % (2 * np.pi) - np.pi
+  start = ecfg.init_steps - 1
+  rows = {}
+  for sec in DRIFT_SECONDS:
+    t = start + int(round(sec / cfg.kinematics.dt))
+    m = ok[..., t]
+    rows[f"{sec}s"] = dict(lateral_mean=float(lateral[..., t][m].mean()),
+                           lateral_abs=float(np.abs(lateral[..., t][m]).mean()),
+                           heading_mean=float(heading[..., t][m].mean()),
+                           heading_abs=float(np.abs(heading[..., t][m]).mean()), agents=int(m.sum()))
+    r = rows[f"{sec}s"]
+    print(f"| {sec} s | {r['lateral_mean']:+.2f} | {r['lateral_abs']:.2f} | {r['heading_mean']:+.3f} | "
+          f"{r['heading_abs']:.3f} | {r['agents']} |", flush=True)
+  return rows
+
+
+def first_action(args, models, cfg, batch, num) -> dict:
+  """First planned action statistics over the batch's moving vehicles."""
+  def one(state, rng):
+    state = env.reset(state)
+    feats = features_lib.scene_features(state, cfg.features)
+    cond = planner.condition(models.encoder, models.stats, jax.tree_util.tree_map(lambda a: a[None], feats), cfg)
+    y0 = planner.sample(models.denoiser, cond, cfg, rng, args.ddim_steps, 0.0, prior_init=args.prior)
+    decode = lambda y: dynamics.clip_action(latent.decode(y, models.stats), cfg.kinematics)
+    log, log_valid = _log_actions(state, cfg.encoder.horizon, cfg)
+    log, log_valid = log[feats.agent_index], log_valid[feats.agent_index]
+    out = encoder.apply(models.encoder, feats, cfg.encoder)
+    speed = planner.agent_speed(feats)
+    proposals = latent.actions_from_positions(out.trajectories, speed[:, None], cfg.kinematics)
+    top1 = jnp.take_along_axis(proposals, jnp.argmax(out.probs, -1)[:, None, None, None], 1)[:, 0]
+    plans = dict(log=log, log_latent=decode(latent.encode(log, models.stats)), top1=top1,
+                 prior_centre=decode(cond.mu[0]), sample=decode(y0[0]))
+    moving = (feats.agent_valid & (speed > 2.0) & jnp.all(log_valid, -1)
+              & (feats.agent_types == ObjectType.VEHICLE))
+    return {k: v[:, 0] for k, v in plans.items()}, moving
+
+  firsts, moving = jax.jit(jax.vmap(one))(batch, jax.random.split(jax.random.PRNGKey(args.seed), num))
+  moving = np.asarray(moving)
+  rows = {}
+  for name, a in firsts.items():
+    a = np.asarray(a)[moving]
+    rows[name] = dict(yaw_rate_mean=float(a[:, 1].mean()), yaw_rate_abs=float(np.abs(a[:, 1]).mean()),
+                      accel_mean=float(a[:, 0].mean()), agents=int(len(a)))
+    r = rows[name]
+    print(f"| {name} | {r['yaw_rate_mean']:+.4f} | {r['yaw_rate_abs']:.4f} | {r['accel_mean']:+.3f} | "
+          f"{r['agents']} |", flush=True)
+  return rows
+
+
+def main(argv=None) -> None:
+  p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+  p.add_argument("--checkpoint", required=True, help="diffusion training workdir (e.g. runs/cpu)")
+  p.add_argument("--scenarios", required=True, help="TFRecord of scenarios")
+  p.add_argument("--num-scenes", type=int, default=6)
+  p.add_argument("--seed", type=int, default=0)
+  p.add_argument("--out", default=None, help="write the rows as JSON here")
+  sub = p.add_subparsers(dest="section", required=True)
+  r = sub.add_parser("replay", help="open-loop execution of one plan per agent")
+  r.add_argument("--plans", default=",".join(PLANS))
+  d = sub.add_parser("drift", help="offset from the log in closed loop")
+  d.add_argument("--method", default="pcdiff", choices=["pcdiff", "pcdiff-noprior", "simpl-ar", "idm", "cv"])
+  d.add_argument("--replan-every", type=int, default=1)
+  d.add_argument("--ddim-steps", type=int, default=5)
+  d.add_argument("--consistent-noise", action="store_true")
+  d.add_argument("--execute", default="actions", choices=["actions", "track"])
+  f = sub.add_parser("first-action", help="first planned action against the log's")
+  f.add_argument("--ddim-steps", type=int, default=5)
+  f.add_argument("--no-prior", dest="prior", action="store_false")
+  args = p.parse_args(argv)
+  if args.num_scenes < 1:
+    p.error("--num-scenes must be >= 1")
+  if not os.path.exists(args.scenarios):
+    p.error(f"--scenarios {args.scenarios}: no such file")
+
+  from pcdiff_jax.training import diffusion_stage
+  prior = getattr(args, "prior", getattr(args, "method", "pcdiff") != "pcdiff-noprior")
+  models, cfg = diffusion_stage.load(args.checkpoint, use_prior=prior)
+  batch, num = _scenes(args.scenarios, args.num_scenes)
+  headers = {"replay": "| plan | collision | off-road | realism W1 | minADE |",
+             "drift": "| time | lateral mean (m, left +) | lateral abs | heading mean (rad) | heading abs | agents |",
+             "first-action": "| plan | yaw rate mean (rad/s) | yaw rate abs | accel mean (m/s^2) | agents |"}
+  print(headers[args.section])
+  print("|" + "---|" * (headers[args.section].count("|") - 1))
+  if args.section == "replay":
+    rows = replay(args, models, cfg, batch, num)
+  elif args.section == "drift":
+    rows = drift(args, models, cfg, batch, num)
+  else:
+    rows = first_action(args, models, cfg, batch, num)
+  if args.out:
+    with open(args.out, "w") as f:
+      json.dump({"section": args.section, "num_scenes": num, "rows": rows}, f, indent=1)
+
+
+if __name__ == "__main__":
+  main()

@@ -1,0 +1,100 @@
+"""A road signed-distance field: Waymax's off-road test sampled on a grid.
+
+Guidance evaluates the off-road cost at every gradient step on every box
+corner of every agent; against E road-edge samples that is O(queries x E)
+each time. The map is static, so the signed distance is computed once per
+scenario on a square grid around the SDC and looked up with bilinear
+interpolation (differentiable in the query point, O(1) per query).
+
+Outside the grid the value is clamped to its border (zero gradient there).
+With no road edge the field is -1e6 everywhere (on road), as in
+`geometry.signed_distance_to_road_edges`.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from pcdiff_jax.sim import geometry
+from pcdiff_jax.sim.datatypes import Array, RoadgraphPoints
+from pcdiff_jax.sim.metrics import road_edges
+
+
+@struct.dataclass
+class RoadField:
+  """values (..., G, G) signed distance (m, positive = off road) at world xy
+  origin + spacing * (i, j) for values[..., i, j] (i along x); origin (..., 2),
+  spacing (...). Queries are given in the frame at frame_xy (..., 2) heading
+  frame_yaw (...) (the world frame by default)."""
+  values: Array
+  origin: Array
+  spacing: Array
+  frame_xy: Array
+  frame_yaw: Array
+
+  def in_frame(self, frame_xy: Array, frame_yaw: Array) -> "RoadField":
+    """The same field, queried in the frame at frame_xy heading frame_yaw."""
+    return self.replace(frame_xy=frame_xy, frame_yaw=frame_yaw)
+
+
+def from_edges(edge_xy: Array, edge_dir: Array, edge_ids: Array, edge_valid: Array,
+               center_xy: Array, size: int, spacing: float) -> RoadField:
+  """The field on a size x size grid of `spacing` m centred on center_xy (2,),
+  from road-edge samples (E, 2) / (E,) in the world frame. One scene; rows are
+  computed one at a time so memory stays O(size x E)."""
+  origin = center_xy - spacing * (size - 1) / 2.0
+  ticks = jnp.arange(size, dtype=jnp.float32) * spacing
+  prior_dir = jnp.concatenate([edge_dir[:1], edge_dir[:-1]])
+  same_line = jnp.concatenate([jnp.zeros((1,), bool), (edge_ids[1:] == edge_ids[:-1]) & edge_valid[:-1]])
+
+  def row(x):
+    query = jnp.stack([jnp.full((size,), x), ticks], -1) + origin        # (G, 2)
+    return _signed_distance(query, edge_xy, edge_dir, prior_dir, same_line, edge_valid)
+  values = jax.lax.map(row, ticks)                                        # (G, G)
+  return RoadField(values=values, origin=origin, spacing=jnp.float32(spacing),
+                   frame_xy=jnp.zeros(2, jnp.float32), frame_yaw=jnp.float32(0.0))
+
+
+def _signed_distance(query: Array, edge_xy: Array, edge_dir: Array, prior_dir: Array, same_line: Array,
+                     valid: Array) -> Array:
+  """`geometry.signed_distance_to_road_edges` for queries (Q, 2) written with
+  plain min / sum reductions instead of an argmin and gathers (several times
+  faster on CPU): the side test is averaged over the samples at the minimum
+  distance, which is the nearest sample's except on exact ties."""
+  to_point = query[:, None, :] - edge_xy[None]                            # (Q, E, 2)
+  sq = jnp.where(valid, jnp.sum(to_point ** 2, -1), jnp.inf)
+  nearest_sq = jnp.min(sq, -1, keepdims=True)
+  cross = lambda d: to_point[..., 0] * d[:, 1] - to_point[..., 1] * d[:, 0]
+  c, c_prior = cross(edge_dir), cross(prior_dir)
+  side = jnp.where(same_line & (c_prior < c), c_prior, c)
+  at_min = (sq <= nearest_sq) & valid
+  side = jnp.sum(jnp.where(at_min, side, 0.0), -1) / jnp.maximum(jnp.sum(at_min, -1), 1)
+  dist = jnp.sqrt(nearest_sq[:, 0] + 1e-12)
+  return jnp.where(jnp.any(valid), jnp.sign(side) * dist, -1e6)
+
+
+def build(roadgraph: RoadgraphPoints, center_xy: Array, size: int = 128, spacing: float = 2.0,
+          max_edge_points: int = 4096) -> RoadField:
+  """The field of the `max_edge_points` road-edge samples nearest center_xy (2,). One scene."""
+  xy, direction, ids, valid = road_edges(roadgraph, center_xy, max_edge_points)
+  return from_edges(xy, direction, ids, valid, center_xy, size, spacing)
+
+
+def lookup(field: RoadField, query_xy: Array) -> Array:
+  """(..., Q) bilinear signed distance at query points (..., Q, 2) given in
+  the field's query frame; ... is the field's batch shape."""
+  world = geometry.from_local(query_xy, field.frame_xy[..., None, :], field.frame_yaw[..., None])
+  size = field.values.shape[-1]
+  grid = (world - field.origin[..., None, :]) / field.spacing[..., None, None]
+  grid = jnp.clip(grid, 0.0, size - 1.0)
+  low = jnp.clip(jnp.floor(grid), 0.0, size - 2.0)
+  frac = grid - low
+  i, j = low[..., 0].astype(jnp.int32), low[..., 1].astype(jnp.int32)
+  flat = field.values.reshape(field.values.shape[:-2] + (-1,))
+
+  def at(di, dj):
+    return jnp.take_along_axis(flat, (i + di) * size + (j + dj), axis=-1)
+  fx, fy = frac[..., 0], frac[..., 1]
+  return ((1 - fx) * (1 - fy) * at(0, 0) + fx * (1 - fy) * at(1, 0)
+          + (1 - fx) * fy * at(0, 1) + fx * fy * at(1, 1))
