@@ -9,6 +9,10 @@ temporary file), closed-loop simulator step time (constant-velocity actor,
 the collision/off-road metrics, and the scene encoder's forward pass (64
 agents, 256 map pieces; per preset: ms per scene and XLA temp memory).
 
+`guidance`: one replanning at 65 agents, 5 DDIM steps, without guidance and
+with objective / adversarial guidance (default settings), and the road field's
+build (once per scenario).
+
 `policy` (the replanning step of ours, weights untrained: speed does not
 depend on their values): the time of one replanning for the reactive agents
 split into encode (features + encoder + proposal latents), sample (DDIM) and
@@ -229,7 +233,35 @@ def bench_policy(path: str, preset: str, agent_counts: list[int], ddim_steps: li
   }
 
 
-SECTIONS = ("parse", "rollout", "encoder", "policy")
+def bench_guidance(path: str, preset: str, repeats: int) -> dict:
+  """One replanning of one scene (65 agents, 5 DDIM steps) without guidance,
+  with objective and with adversarial guidance (default GuidanceConfig), the
+  road field built beforehand as the actor does at init; and that build."""
+  import dataclasses
+  from pcdiff_jax import policy
+  from pcdiff_jax.config import get_config
+  from pcdiff_jax.data import womd
+  from pcdiff_jax.model.guidance import GuidanceConfig, road_of
+  from pcdiff_jax.sim import env
+  state = env.reset(womd.load(path)[0])
+  cfg = get_config(preset)
+  models = _policy_models(state, cfg)
+  rng = jax.random.PRNGKey(2)
+  out = {"agents": cfg.features.max_agents, "ddim_steps": 5}
+  for mode in ("none", "objective", "adversarial"):
+    g = dataclasses.replace(GuidanceConfig(), mode=mode)
+    pcfg = policy.PolicyConfig(ddim_steps=5, guidance=g)
+    road = jax.jit(lambda s: road_of(s, g))(state)
+    adversary = jax.jit(lambda s: policy.pursuer_of(s, cfg, g))(state)
+    out[mode] = _compiled_ms(lambda m, s, r, rd: policy.plan_actions(m, s, cfg, pcfg, r, adversary, road=rd),
+                             (models, state, rng, road), repeats)
+  g = dataclasses.replace(GuidanceConfig(), mode="objective")
+  out["road_field_build"] = _compiled_ms(lambda s: road_of(s, g), (state,), repeats)
+  out["road_field"] = {"size": g.field_size, "spacing_m": g.field_spacing, "edge_points": g.max_edge_points}
+  return out
+
+
+SECTIONS = ("parse", "rollout", "encoder", "policy", "guidance")
 
 
 def main(argv=None) -> int:
@@ -264,6 +296,8 @@ def main(argv=None) -> int:
   if "policy" in args.sections:
     results["policy"] = bench_policy(args.scenarios, args.policy_preset, args.agents, args.ddim_steps,
                                      args.policy_batch_sizes, args.repeats)
+  if "guidance" in args.sections:
+    results["guidance"] = bench_guidance(args.scenarios, args.policy_preset, args.repeats)
   print(json.dumps(results, indent=2))
   if args.json:
     with open(args.json, "w") as f:

@@ -35,6 +35,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="draw each agent's initial DDIM noise once per rollout (default: at every replan)")
   p.add_argument("--execute", default="actions", choices=["actions", "track"],
                  help="pcdiff: run the plan's actions (paper) or track its path 0.5 s ahead (pure pursuit)")
+  p.add_argument("--prior-centre", default="mean", choices=["mean", "top1"],
+                 help="pcdiff: start DDIM around the mean of the K proposals (paper) or the most likely one")
   p.add_argument("--num-rollouts", type=int, default=1,
                  help="stochastic rollouts per scenario (minADE takes the best)")
   p.add_argument("--seeds", type=int, default=1, help="repeat everything with this many seeds (mean, std)")
@@ -93,7 +95,7 @@ def main(argv=None) -> int:
   logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
   cfg = evaluation.EvalConfig(method=args.method, checkpoint=args.checkpoint, ego=args.ego,
                               ddim_steps=args.ddim_steps, consistent_noise=args.consistent_noise,
-                              execute=args.execute,
+                              execute=args.execute, prior_centre=args.prior_centre,
                               replan_every=args.replan_every, num_rollouts=args.num_rollouts,
                               seeds=args.seeds,
                               num_steps=args.num_steps, batch_size=args.batch_size,

@@ -59,6 +59,7 @@ class EvalConfig:
   replan_every: int = 1
   consistent_noise: bool = False
   execute: str = "actions"
+  prior_centre: str = "mean"
   num_rollouts: int = 1
   seeds: int = 1
   num_steps: int = 80
@@ -112,7 +113,8 @@ def _method_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
   models, model_cfg = diffusion_stage.load(cfg.checkpoint, use_prior=use_prior)
   pcfg = policy.PolicyConfig(ddim_steps=cfg.ddim_steps, eta=cfg.eta, prior_init=use_prior,
                              replan_every=cfg.replan_every, guidance=cfg.guidance,
-                             consistent_noise=cfg.consistent_noise, execute=cfg.execute)
+                             consistent_noise=cfg.consistent_noise, execute=cfg.execute,
+                             prior_centre=cfg.prior_centre)
   return policy.actor(model_cfg, pcfg), models
 
 

@@ -55,6 +55,9 @@ class PolicyConfig:
   simulated state towards the plan's point `track_steps` ahead (pure pursuit,
   as SIMPL-AR executes its proposals), which ignores the noise of a plan's
   first action (docs/RESULTS.md: "The expected order does not hold").
+
+  prior_centre: "mean" starts DDIM around the mean of each agent's K proposal
+  latents (the paper's prior); "top1" around its most likely proposal's.
   """
   ddim_steps: int = 5
   eta: float = 0.0
@@ -64,6 +67,7 @@ class PolicyConfig:
   consistent_noise: bool = False
   execute: str = "actions"
   track_steps: int = 5
+  prior_centre: str = "mean"
 
 
 @struct.dataclass
@@ -117,6 +121,8 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
   feats = features_lib.scene_features(state, cfg.features)
   batched = jax.tree_util.tree_map(lambda a: a[None], feats)
   cond = planner.condition(models.encoder, models.stats, batched, cfg)
+  if policy.prior_centre == "top1":
+    cond = planner.centre_on_top_mode(cond)
   if road is None:
     road = guidance_lib.road_of(state, policy.guidance)
   guide = _guide(models, state, batched, cond, cfg, policy.guidance, jnp.asarray(adversary, jnp.int32), road)
@@ -174,6 +180,8 @@ def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
   the rollout for batches."""
   if policy.replan_every < 1 or policy.replan_every > cfg.encoder.horizon:
     raise ValueError(f"replan_every must be in [1, {cfg.encoder.horizon}], got {policy.replan_every}")
+  if policy.prior_centre not in ("mean", "top1"):
+    raise ValueError(f"prior_centre must be 'mean' or 'top1', got {policy.prior_centre!r}")
   if policy.execute not in EXECUTE:
     raise ValueError(f"execute must be one of {EXECUTE}, got {policy.execute!r}")
   if not 2 <= policy.track_steps <= cfg.encoder.horizon:

@@ -176,3 +176,20 @@ def test_track_execution_follows_the_planned_path(models):
   assert float(jnp.abs(ps.path[1:]).sum()) > 0                    # world-frame plan kept
   with pytest.raises(ValueError, match="execute"):
     policy.actor(CFG, policy.PolicyConfig(execute="teleport"))
+
+
+def test_prior_centred_on_the_top_mode(models):
+  state = env.reset(make_scene(num_steps=91))
+  from pcdiff_jax.model import features as features_lib
+  feats = jax.tree_util.tree_map(lambda a: a[None], features_lib.scene_features(state, CFG.features))
+  cond = planner.condition(models.encoder, models.stats, feats, CFG)
+  top = planner.centre_on_top_mode(cond)
+  best = np.asarray(jnp.argmax(cond.probs, -1))[0]
+  props = np.asarray(cond.proposals)[0]
+  np.testing.assert_allclose(np.asarray(top.mu)[0], props[np.arange(len(best)), best])
+  np.testing.assert_array_equal(np.asarray(top.sigma), np.asarray(cond.sigma))
+  pcfg = policy.PolicyConfig(ddim_steps=1, prior_centre="top1")
+  plan = jax.jit(lambda r: policy.plan_actions(models, state, CFG, pcfg, r)[0])(jax.random.key(0))
+  assert bool(jnp.all(jnp.isfinite(plan)))
+  with pytest.raises(ValueError, match="prior_centre"):
+    policy.actor(CFG, policy.PolicyConfig(prior_centre="median"))

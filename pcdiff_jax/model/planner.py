@@ -89,6 +89,15 @@ def condition(encoder_params: Any, stats: LatentStats, feats: SceneFeatures, cfg
                       probs=out.probs)
 
 
+def centre_on_top_mode(cond: Conditioning) -> Conditioning:
+  """The same prior centred on each agent's most likely proposal latent instead
+  of the mean of its K proposals (sigma unchanged). A test-time option: the
+  mean of the modes is not a mode (docs/RESULTS.md: it starts with a turn)."""
+  best = jnp.argmax(cond.probs, -1)                                        # (..., A)
+  top = jnp.take_along_axis(cond.proposals, best[..., None, None], axis=-2)[..., 0, :]
+  return cond.replace(mu=top)
+
+
 def schedule_of(cfg: Config) -> diffusion.Schedule:
   d = cfg.diffusion
   return diffusion.linear_schedule(d.num_steps, d.beta_min, d.beta_max)

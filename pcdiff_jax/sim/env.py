@@ -5,7 +5,7 @@ scenario), so it can be jitted once and vmapped or batched over scenarios.
 """
 from __future__ import annotations
 
-from typing import Any, Optional
+from typing import Any
 
 import jax
 import jax.numpy as jnp

@@ -5,7 +5,6 @@ friendly (no data-dependent shapes).
 """
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 
 from pcdiff_jax.sim.datatypes import Array
