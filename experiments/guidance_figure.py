@@ -6,8 +6,9 @@
 Rolls ours out in closed loop (80 steps, replanning every 10 steps by default)
 on the first N scenes once per
 guidance mode with the same seed, and writes OUT/fig3.png (rows: scenes;
-columns: modes; each panel the last step with 8 s trails; the SDC red, the
-pursuer of the adversarial run ringed and traced in orange in every column) and
+columns: modes; each row drawn at the step where the adversarial run's
+pursuer comes closest to the SDC, with trails from the start; the SDC red, the
+pursuer traced in orange and ringed in every column) and
 OUT/gifs/<mode>_<scenario>.gif.
 """
 from __future__ import annotations
@@ -71,28 +72,45 @@ def main(argv=None) -> int:
       return 2
     print(f"rolling out {n} scene(s) with guidance {mode} ...", flush=True)
     finals[mode] = jax.device_get(evaluation.make_rollout_fn(actor, cfg)(states, rngs, params))
+  start = cfg.init_steps - 1
   pursuers = np.asarray(jax.vmap(lambda f: evaluation.pursuer_at_start(f, cfg))(finals["adversarial"]))
   os.makedirs(os.path.join(args.out, "gifs"), exist_ok=True)
   fig = viz._figure((4.0 * len(MODES), 4.0 * n), 90)
   axes = fig.subplots(n, len(MODES), squeeze=False)
   for i in range(n):
+    k = int(pursuers[i])
+    moment = _closest_approach(jax.tree_util.tree_map(lambda a: np.asarray(a[i]), finals["adversarial"]), k, start)
     for j, mode in enumerate(MODES):
       one = jax.tree_util.tree_map(lambda a: np.asarray(a[i]), finals[mode])
-      last = one.sim_trajectory.num_timesteps - 1
-      ax = viz.plot_scene(axes[i, j], one, timestep=last, trail=80, view_radius=50.0,
-                          title=f"{meta.scenario_id[i][:10]}: {TITLES[mode]}")
-      k = int(pursuers[i])
+      ax = viz.plot_scene(axes[i, j], one, timestep=moment, trail=moment - start, view_radius=50.0,
+                          title=f"{meta.scenario_id[i][:10]} t={(moment - start) / 10:.1f}s: {TITLES[mode]}")
       if k >= 0:   # the pursuer of the adversarial run, ringed in every column for comparison
         traj = one.sim_trajectory
-        ax.plot(traj.x[k, 10:], traj.y[k, 10:], color="tab:orange", lw=1.0)
-        ax.scatter([traj.x[k, last]], [traj.y[k, last]], s=160, facecolors="none",
-                   edgecolors="tab:orange", linewidths=2.0, zorder=5)
+        seen = np.flatnonzero(traj.valid[k, start:moment + 1]) + start
+        if len(seen):
+          ax.plot(traj.x[k, seen], traj.y[k, seen], color="tab:orange", lw=1.0)
+          ax.scatter([traj.x[k, seen[-1]]], [traj.y[k, seen[-1]]], s=160, facecolors="none",
+                     edgecolors="tab:orange", linewidths=2.0, zorder=5)
       viz.render_rollout_gif(one, os.path.join(args.out, "gifs", f"{mode}_{meta.scenario_id[i]}.gif"))
   fig.tight_layout()
   path = os.path.join(args.out, "fig3.png")
   fig.savefig(path)
   print(f"wrote {path} and {args.out}/gifs/")
   return 0
+
+
+def _closest_approach(state, pursuer: int, start: int) -> int:
+  """The step of the adversarial run where the pursuer comes closest to the SDC
+  (the last step without a pursuer)."""
+  traj = state.sim_trajectory
+  last = traj.num_timesteps - 1
+  if pursuer < 0:
+    return last
+  sdc = int(np.argmax(state.object_metadata.is_sdc))
+  both = traj.valid[sdc] & traj.valid[pursuer]
+  dist = np.hypot(traj.x[sdc] - traj.x[pursuer], traj.y[sdc] - traj.y[pursuer])
+  dist = np.where(both & (np.arange(last + 1) > start), dist, np.inf)
+  return int(np.argmin(dist)) if np.isfinite(dist).any() else last
 
 
 if __name__ == "__main__":
