@@ -214,8 +214,11 @@ def main(argv=None) -> None:
 
   from pcdiff_jax.training import diffusion_stage
   prior = getattr(args, "prior", getattr(args, "method", "pcdiff") != "pcdiff-noprior")
-  models, cfg = diffusion_stage.load(args.checkpoint, use_prior=prior)
-  batch, num = _scenes(args.scenarios, args.num_scenes)
+  try:
+    models, cfg = diffusion_stage.load(args.checkpoint, use_prior=prior)
+    batch, num = _scenes(args.scenarios, args.num_scenes)
+  except (FileNotFoundError, ValueError) as err:
+    p.error(str(err))
   headers = {"replay": "| plan | collision | off-road | realism W1 | minADE |",
              "drift": "| time | lateral mean (m, left +) | lateral abs | heading mean (rad) | heading abs | agents |",
              "first-action": "| plan | yaw rate mean (rad/s) | yaw rate abs | accel mean (m/s^2) | agents |"}
