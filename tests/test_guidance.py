@@ -148,7 +148,9 @@ def test_collision_cost_over_nearest_neighbours_equals_all_pairs():
   c = G._circles(xy, yaw, agents, CFG)
   r = agents.width / 2
   pair = agents.valid[:, None] & agents.valid[None, :] & ~jnp.eye(12, dtype=bool)
-  brute = jnp.sum(jnp.where(pair, G._overlaps(c, c, r, r, CFG.coll_margin), 0.0), -1)
+  every = jnp.broadcast_to(c[None], (12,) + c.shape)                        # all agents as neighbours
+  brute = jnp.sum(jnp.where(pair, G._pair_overlaps(c, every, r, jnp.broadcast_to(r, (12, 12)),
+                                                   CFG.coll_margin), 0.0), -1)
   assert float(jnp.min(brute[:11])) > 0 and float(brute[11]) == 0.0
   for k in (10, 11):
     near = G.collision_cost(xy, yaw, agents, dataclasses.replace(CFG, coll_neighbors=k))

@@ -119,15 +119,6 @@ def map_cost(xy: Array, yaw: Array, agents: Agents, road: RoadField, cfg: Guidan
   return jnp.where(agents.valid & agents.vehicle, per_agent, 0.0)
 
 
-def _overlaps(ci: Array, c: Array, ri: Array, r: Array, margin: float) -> Array:
-  """(..., I, J) summed squared overlaps of circles ci (..., I, H, 3, 2) radius
-  ri (..., I) with circles c (..., J, H, 3, 2) radius r (..., J)."""
-  diff = ci[..., :, None, :, :, None, :] - c[..., None, :, :, None, :, :]  # (..., I, J, H, 3, 3, 2)
-  dist = jnp.sqrt(jnp.sum(diff ** 2, -1) + _EPS)
-  reach = (ri[..., :, None] + r[..., None, :] + margin)[..., None, None, None]
-  return jnp.sum(jnp.maximum(reach - dist, 0.0) ** 2, axis=(-1, -2, -3))
-
-
 def _gather_agents(a: Array, index: Array) -> Array:
   """a (..., A, *rest) gathered at index (..., A, k) -> (..., A, k, *rest)."""
   batch = a.shape[:-4]
@@ -192,8 +183,8 @@ def agent_objective(xy: Array, yaw: Array, agents: Agents, road: RoadField, cfg:
   own_xy, own_yaw = one(xy, 3), one(yaw, 2)
   own_map = map_cost(own_xy, own_yaw, mine, road, cfg)[..., 0]
   c = _circles(xy, yaw, agents, cfg)
-  overlap = _overlaps(_circles(own_xy, own_yaw, mine, cfg), c, mine.width / 2.0, agents.width / 2.0,
-                      cfg.coll_margin)[..., 0, :]                               # (..., A)
+  overlap = _pair_overlaps(_circles(own_xy, own_yaw, mine, cfg), c[..., None, :, :, :, :],
+                           mine.width / 2.0, agents.width[..., None, :] / 2.0, cfg.coll_margin)[..., 0, :]  # (..., A)
   others = agents.valid & (jnp.arange(agents.valid.shape[-1]) != slot[..., None]) & mine.valid
   own_coll = jnp.sum(jnp.where(others, overlap, 0.0), -1)
   return jnp.where((slot >= 0) & mine.valid[..., 0], cfg.w_map * own_map + cfg.w_coll * own_coll, 0.0)
