@@ -77,7 +77,7 @@ class PlanState:
   adversary () object slot of the pursuer under adversarial guidance (-1: none);
   noise (O, d) each object's initial DDIM noise (consistent_noise); road the
   scene's road signed-distance field for guidance, built once at `init`;
-  path (O, T, 2) the last plan's positions in the world frame."""
+  path (O, T, 2) the last plan's positions in the world frame (execute="track")."""
   controlled: Array
   plan: Array
   path: Array
@@ -116,7 +116,8 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
   road field, default built here, which costs a field per call).
 
   Returns actions (O, T, 2) per object (zeros where not planned), which
-  objects got a plan (O,), and the planned positions (O, T, 2) in the world frame.
+  objects got a plan (O,), and the planned positions (O, T, 2) in the world frame
+  (zeros unless policy.execute is "track").
   """
   feats = features_lib.scene_features(state, cfg.features)
   batched = jax.tree_util.tree_map(lambda a: a[None], feats)
@@ -132,8 +133,11 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
                       prior_init=policy.prior_init, guide=guide, guide_steps=steps,
                       init_noise=init_noise)
   actions = dynamics.clip_action(latent.decode(y0[0], models.stats), cfg.kinematics)  # (A, T, 2)
-  states = dynamics.rollout(latent.initial_states(cond.speed[0]), actions, cfg.kinematics.dt)
-  path, _ = features_lib.agent_to_world(states[..., :2], states[..., 2], feats)        # (A, T, 2)
+  if policy.execute == "track":   # the world-frame path is only needed to track it
+    states = dynamics.rollout(latent.initial_states(cond.speed[0]), actions, cfg.kinematics.dt)
+    path, _ = features_lib.agent_to_world(states[..., :2], states[..., 2], feats)      # (A, T, 2)
+  else:
+    path = jnp.zeros_like(actions)
   num_objects = state.object_metadata.ids.shape[-1]
   per_object = features_lib.scatter_to_objects(actions, feats, num_objects)
   planned = features_lib.scatter_to_objects(feats.agent_valid, feats, num_objects, fill=False)

@@ -193,8 +193,7 @@ def agent_objective(xy: Array, yaw: Array, agents: Agents, road: RoadField, cfg:
 def pursuit_cost(xy: Array, agents: Agents, cfg: GuidanceConfig) -> Array:
   """(...,) soft minimum over the near term of the pursuer-evader distance (0 without a pair)."""
   h = cfg.coll_horizon
-  take = lambda slot: jnp.take_along_axis(xy[..., :h, :], jnp.maximum(slot, 0)[..., None, None, None],
-                                          axis=-3)[..., 0, :, :]             # (..., H, 2)
+  take = lambda slot: _take(xy[..., :h, :], slot, 3)[..., 0, :, :]          # (..., H, 2)
   dist = jnp.sqrt(jnp.sum((take(agents.pursuer) - take(agents.evader)) ** 2, -1) + _EPS)
   tau = cfg.pursuit_temperature
   soft_min = -tau * jax.nn.logsumexp(-dist / tau, axis=-1) + tau * jnp.log(dist.shape[-1])
