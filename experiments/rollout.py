@@ -37,6 +37,15 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="pcdiff: run the plan's actions (paper) or track its path 0.5 s ahead (pure pursuit)")
   p.add_argument("--prior-centre", default="mean", choices=["mean", "top1"],
                  help="pcdiff: start DDIM around the mean of the K proposals (paper) or the most likely one")
+  p.add_argument("--warm-start", action="store_true",
+                 help="pcdiff: start each replan from the previous plan, advanced by the executed steps "
+                      "(amortised replanning), instead of the proposal prior")
+  p.add_argument("--warm-step", type=int, default=evaluation.EvalConfig.warm_step,
+                 help="pcdiff --warm-start: the diffusion step the previous plan is noised to (of 100)")
+  p.add_argument("--warm-ddim-steps", type=int, default=evaluation.EvalConfig.warm_ddim_steps,
+                 help="pcdiff --warm-start: DDIM steps from --warm-step")
+  p.add_argument("--simpl-ar-sample", action="store_true",
+                 help="simpl-ar: draw each agent's mode by its probability (default: the top mode)")
   p.add_argument("--num-rollouts", type=int, default=1,
                  help="stochastic rollouts per scenario (minADE takes the best)")
   p.add_argument("--seeds", type=int, default=1, help="repeat everything with this many seeds (mean, std)")
@@ -72,6 +81,10 @@ def parse_args(argv=None) -> argparse.Namespace:
                "seeds"):
     if getattr(args, name) < 1:
       p.error(f"--{name.replace('_', '-')} must be >= 1")
+  if not 0 <= args.warm_step <= 99:
+    p.error("--warm-step must be in [0, 99]")
+  if not 1 <= args.warm_ddim_steps <= args.warm_step + 1:
+    p.error("--warm-ddim-steps must be in [1, --warm-step + 1]")
   if args.max_scenarios is not None and args.max_scenarios < 1:
     p.error("--max-scenarios must be >= 1")
   if args.num_steps > 80:
@@ -100,7 +113,9 @@ def main(argv=None) -> int:
                               seeds=args.seeds,
                               num_steps=args.num_steps, batch_size=args.batch_size,
                               gifs=args.gifs, seed=args.seed, score_adversary=args.score_adversary,
-                              max_scenarios=args.max_scenarios,
+                              max_scenarios=args.max_scenarios, warm_start=args.warm_start,
+                              warm_step=args.warm_step, warm_ddim_steps=args.warm_ddim_steps,
+                              simpl_ar_sample=args.simpl_ar_sample,
                               metrics=MetricsConfig(max_reactive_agents=args.max_agents),
                               guidance=GuidanceConfig(
                                   mode=args.guidance, w_map=args.w_map, w_coll=args.w_coll,
@@ -108,12 +123,15 @@ def main(argv=None) -> int:
                                   guided_steps=args.guided_steps, inner_steps=args.inner_steps,
                                   ibr_rounds=args.ibr_rounds, adversary=args.adversary))
   try:
-    evaluation.evaluate(args.scenarios, args.out, cfg, progress=not args.no_progress)
+    summary = evaluation.evaluate(args.scenarios, args.out, cfg, progress=not args.no_progress)
   except (FileNotFoundError, ValueError, RuntimeError) as err:
     print(f"error: {err}", file=sys.stderr)
     return 2
   with open(f"{args.out}/metrics.md") as f:
     print(f.read())
+  if summary["lost_agents"]:
+    print(f"warning: {summary['lost_agents']} controlled agent(s) vanished mid-rollout "
+          f"(of {summary['controlled_agents']}); see {args.out}/scenarios.jsonl", file=sys.stderr)
   print(f"wrote {args.out}/metrics.json, metrics.md, scenarios.jsonl, gifs/")
   return 0
 

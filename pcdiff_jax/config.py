@@ -109,8 +109,22 @@ class DiffusionConfig:
   eta: float = 0.0
   diffusion_loss_weight: float = 1.0
   state_loss_weight: float = 0.5
-  pca_fit_scenes: int = 500        # training scenes whose logs and proposals fit the PCA
+  pca_fit_scenes: int = 500        # training scenes whose futures fit the PCA
+  pca_proposal_weight: float = 0.0  # share of the proposals in the PCA fit (models v2: 0.5)
   denoiser: DenoiserConfig = DenoiserConfig()
+
+
+@dataclasses.dataclass(frozen=True)
+class PerturbConfig:
+  """Recovery examples (`training.perturb`): with probability `prob`, a moving
+  vehicle is displaced by up to `max_lateral` m sideways and `max_heading` rad
+  at the current step, and its target re-joins the log within
+  `rejoin_seconds`. prob 0 turns it off."""
+  prob: float = 0.0
+  max_lateral: float = 1.5         # m
+  max_heading: float = 0.15        # rad
+  rejoin_seconds: float = 3.0
+  min_speed: float = 2.0           # m/s
 
 
 @dataclasses.dataclass(frozen=True)
@@ -120,7 +134,8 @@ class TrainConfig:
   AdamW with a linear warm-up to `learning_rate` over `warmup_steps`, then a
   cosine decay to `final_lr_fraction` x it at `total_steps`; gradients are
   clipped to a global norm of `grad_clip`. Every `*_every` counts optimizer
-  steps. Examples are the scenes at the replanning steps `current_steps`.
+  steps. Examples are the scenes at the replanning steps `current_steps`;
+  `perturb` adds recovery examples to the training batches (not validation).
   """
   batch_size: int = 16
   learning_rate: float = 1e-3
@@ -137,6 +152,7 @@ class TrainConfig:
   keep_checkpoints: int = 2
   seed: int = 0
   current_steps: tuple[int, ...] = (10,)
+  perturb: PerturbConfig = PerturbConfig()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -153,6 +169,7 @@ class Config:
 _CPU_ENCODER = EncoderConfig(d_model=64, num_heads=4, num_layers=2, agent_blocks=2,
                              num_neighbors=32, dropout=0.1, bezier_degree=7)
 _CPU_DENOISER = DenoiserConfig(d_model=64, num_heads=4, num_layers=2, dropout=0.1)
+_RECOVERY = PerturbConfig(prob=0.5)
 
 PRESETS: dict[str, Config] = {
     "tiny": Config(
@@ -162,23 +179,27 @@ PRESETS: dict[str, Config] = {
         encoder=EncoderConfig(d_model=32, num_heads=4, num_layers=2, agent_blocks=1,
                               num_neighbors=16, dropout=0.0, bezier_degree=5),
         encoder_train=TrainConfig(batch_size=2, warmup_steps=2, total_steps=6, eval_batch_size=2,
-                                  log_every=1, eval_every=3, checkpoint_every=2),
+                                  log_every=1, eval_every=3, checkpoint_every=2,
+                                  perturb=PerturbConfig(prob=0.5)),
         diffusion=DiffusionConfig(latent_dim=8, pca_fit_scenes=8, denoiser=DenoiserConfig(
             d_model=32, num_heads=4, num_layers=1, dropout=0.0)),
         diffusion_train=TrainConfig(batch_size=2, learning_rate=5e-4, weight_decay=1e-3,
                                     warmup_steps=2, total_steps=6, eval_batch_size=2,
-                                    log_every=1, eval_every=3, checkpoint_every=2)),
+                                    log_every=1, eval_every=3, checkpoint_every=2,
+                                    perturb=PerturbConfig(prob=0.5))),
+    # Models v3 (issue 14): recovery examples in both stages, latent fitted on
+    # futures only, longer schedules for the 10k-scene set.
     "cpu": Config(
         features=FeaturesConfig(max_agents=65, history_steps=11, max_polylines=256,
                                 points_per_polyline=10, segment_length=20.0),
         encoder=_CPU_ENCODER,
         encoder_train=TrainConfig(batch_size=8, learning_rate=2e-3, warmup_steps=100,
-                                  total_steps=1500, eval_every=500, checkpoint_every=100,
-                                  current_steps=(10, 30)),
+                                  total_steps=2500, eval_every=500, checkpoint_every=100,
+                                  current_steps=(10, 30), perturb=_RECOVERY),
         diffusion=DiffusionConfig(denoiser=_CPU_DENOISER),
         diffusion_train=TrainConfig(batch_size=8, learning_rate=5e-4, weight_decay=1e-3,
-                                    warmup_steps=100, total_steps=1500, eval_every=500,
-                                    checkpoint_every=100)),
+                                    warmup_steps=100, total_steps=2000, eval_every=500,
+                                    checkpoint_every=100, perturb=_RECOVERY)),
     # `make demo`: the whole pipeline in minutes on 2 cores (cpu-sized layers,
     # half the agents and map pieces, a few hundred steps per stage).
     "demo": Config(

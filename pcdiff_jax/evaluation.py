@@ -50,7 +50,16 @@ class EvalConfig:
   learned diffusion policies (`model.guidance`). score_adversary: also score
   the ego against the most threatening agent (the pursuer adversarial
   guidance would pick) when the run is not adversarial, for comparison.
-  max_scenarios: the first N scenarios of the files only."""
+  max_scenarios: the first N scenarios of the files only. warm_start,
+  warm_step, warm_ddim_steps: amortised replanning of the diffusion policies
+  (`policy.PolicyConfig`). simpl_ar_sample: SIMPL-AR draws its modes by their
+  probabilities instead of taking the top mode.
+
+  The learned methods model up to `metrics.max_reactive_agents` + 1 agents
+  (the SDC and every evaluated agent), whatever cap they were trained with,
+  so every evaluated agent is controlled and none follows its log; the
+  attention layers take any agent count, at a cost that grows with it
+  (docs/BENCHMARKS.md)."""
   method: str = "cv"
   checkpoint: Optional[str] = None
   ego: str = "log"
@@ -71,6 +80,10 @@ class EvalConfig:
   guidance: GuidanceConfig = GuidanceConfig()
   score_adversary: bool = False
   max_scenarios: Optional[int] = None
+  warm_start: bool = False
+  warm_step: int = 30
+  warm_ddim_steps: int = 2
+  simpl_ar_sample: bool = False
 
   @property
   def adversarial_scores(self) -> bool:
@@ -108,14 +121,22 @@ def _method_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
   if cfg.method == "simpl-ar":
     from pcdiff_jax.baselines import simpl_ar
     enc, model_cfg = encoder_stage.load(cfg.checkpoint)
-    return simpl_ar.simpl_ar(model_cfg), enc
+    ar = simpl_ar.SimplARConfig(sample=cfg.simpl_ar_sample)
+    return simpl_ar.simpl_ar(with_agent_cap(model_cfg, cfg.metrics), ar), enc
   use_prior = cfg.method == "pcdiff"
   models, model_cfg = diffusion_stage.load(cfg.checkpoint, use_prior=use_prior)
   pcfg = policy.PolicyConfig(ddim_steps=cfg.ddim_steps, eta=cfg.eta, prior_init=use_prior,
                              replan_every=cfg.replan_every, guidance=cfg.guidance,
                              consistent_noise=cfg.consistent_noise, execute=cfg.execute,
-                             prior_centre=cfg.prior_centre)
-  return policy.actor(model_cfg, pcfg), models
+                             prior_centre=cfg.prior_centre, warm_start=cfg.warm_start,
+                             warm_step=cfg.warm_step, warm_ddim_steps=cfg.warm_ddim_steps)
+  return policy.actor(with_agent_cap(model_cfg, cfg.metrics), pcfg), models
+
+
+def with_agent_cap(model_cfg, metrics: MetricsConfig):
+  """The model config with room for the SDC and every evaluated agent."""
+  features = dataclasses.replace(model_cfg.features, max_agents=metrics.max_reactive_agents + 1)
+  return dataclasses.replace(model_cfg, features=features)
 
 
 def make_rollout_fn(actor: Actor, cfg: EvalConfig):
@@ -184,7 +205,9 @@ def _markdown(summary: dict) -> str:
             f"{100 * r['vehicle_collision_rate']:.2f}%; vehicles starting off-road "
             f"{100 * r['start_offroad_fraction']:.2f}%. Evaluated agents per seed: "
             f"{int(r['num_evaluated'])} (vehicles {int(r['num_vehicles'])}); skipped scenarios: "
-            f"{len(summary['skipped'])}. Runtime: one jitted closed-loop call over "
+            f"{len(summary['skipped'])}. Controlled agents lost mid-rollout: {summary['lost_agents']} of "
+            f"{summary['controlled_agents']} (all seeds); objects following their log: "
+            f"{summary['log_following_agents']}. Runtime: one jitted closed-loop call over "
             f"{summary['runtime_ms_per_replan']['scenarios_per_call']} scenario rollouts, per step, "
             "compile excluded."]
   adv = summary.get("adversarial")
@@ -260,7 +283,8 @@ def evaluate(scenarios: Sequence[str] | str, out_dir: str, cfg: EvalConfig,
           row = {"scenario_id": meta.scenario_id[i], "path": meta.path[i], "record": meta.record_index[i],
                  "seed": seed}
           row.update({k: v for k, v in metrics_lib.aggregate(one).items()
-                      if k in ("collision_rate", "offroad_rate", "min_ade", "num_evaluated")})
+                      if k in ("collision_rate", "offroad_rate", "min_ade", "num_evaluated",
+                               "lost_agents", "log_following_agents")})
           per_scenario.write(json.dumps(row) + "\n")
           per_scenario.flush()
           if gifs_done < cfg.gifs:
@@ -281,9 +305,17 @@ def evaluate(scenarios: Sequence[str] | str, out_dir: str, cfg: EvalConfig,
     t0 = time.perf_counter()
     jax.block_until_ready(run(tiled, rngs, params))
     step_ms.append(1000 * (time.perf_counter() - t0) / num_replans)
+  lost = [m["lost_agents"] for m in per_seed]
+  if any(lost):
+    log.warning("%s lost %s controlled agent(s) mid-rollout (per seed; of %s controlled): an actor "
+                "must keep every controlled agent valid", cfg.method, lost,
+                [m["controlled_agents"] for m in per_seed])
   summary = {
       "method": cfg.method,
       "num_scenarios": num_done,
+      "lost_agents": int(sum(lost)),
+      "controlled_agents": int(sum(m["controlled_agents"] for m in per_seed)),
+      "log_following_agents": int(sum(m["log_following_agents"] for m in per_seed)),
       "seeds": len(per_seed),
       "num_rollouts": n_roll,
       **{k: _mean_std([m[k] for m in per_seed]) for k, _, _ in HEADLINE[:-1]},

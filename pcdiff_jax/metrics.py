@@ -44,12 +44,19 @@ class RolloutScores:
   events: EventCounts; hist_sim, hist_log: (3, K) counts per quantity of
   REALISM_QUANTITIES (K = the largest bin count; shorter rows are 0-padded);
   ade: (O,) per object; ade_valid: (O,) evaluated and with a valid step.
+  controlled: (O,) objects the actor controlled, valid at the start step;
+  lost: (O,) of those, the ones invalid at a later simulated step (an actor
+  that drops an agent makes it vanish: it must stay 0); log_following: (O,)
+  objects valid at the start that no actor controlled (they replay the log).
   """
   events: sim_metrics.EventCounts
   hist_sim: Array
   hist_log: Array
   ade: Array
   ade_valid: Array
+  controlled: Array
+  lost: Array
+  log_following: Array
   adversarial: Optional["AdversarialScores"] = None
 
 
@@ -144,8 +151,23 @@ def score_rollout(final_state: SimulatorState, start_step: int, num_steps: int, 
   dist = jnp.sqrt((sim.x - log.x) ** 2 + (sim.y - log.y) ** 2)
   count = jnp.sum(both, -1)
   ade = jnp.sum(jnp.where(both, dist, 0.0), -1) / jnp.maximum(count, 1)
+  controlled, lost = lost_agents(final_state, start_step, num_steps)
+  at_start = sim.valid[:, start_step]
   return RolloutScores(events=events, hist_sim=_hist_counts(sim, mask),
-                       hist_log=_hist_counts(log, mask), ade=ade, ade_valid=count > 0)
+                       hist_log=_hist_counts(log, mask), ade=ade, ade_valid=count > 0,
+                       controlled=controlled, lost=lost,
+                       log_following=at_start & ~final_state.object_metadata.is_controlled)
+
+
+def lost_agents(final_state: SimulatorState, start_step: int, num_steps: int) -> tuple[Array, Array]:
+  """(O,) the controlled objects valid at the start step, and (O,) those of
+  them invalid at some simulated step after it. The controlled set is the
+  final state's `is_controlled` (`sim.step` records it; actors fix it at init)."""
+  sim = final_state.sim_trajectory
+  t = jnp.arange(sim.num_timesteps)
+  steps = (t > start_step) & (t <= start_step + num_steps)                  # (T,)
+  controlled = final_state.object_metadata.is_controlled & sim.valid[:, start_step]
+  return controlled, controlled & jnp.any(steps[None] & ~sim.valid, -1)
 
 
 def realism_w1(hist_sim: np.ndarray, hist_log: np.ndarray) -> dict[str, float]:
@@ -173,6 +195,9 @@ def aggregate(scores: RolloutScores) -> dict[str, float]:
   out.update(realism_w1(np.sum(scores.hist_sim, axis=(0, 1)), np.sum(scores.hist_log, axis=(0, 1))))
   out["min_ade"] = float(min_ade[scored].mean()) if scored.any() else float("nan")
   out["num_ade_agents"] = int(scored.sum())
+  out["controlled_agents"] = int(np.sum(scores.controlled))
+  out["lost_agents"] = int(np.sum(scores.lost))
+  out["log_following_agents"] = int(np.sum(scores.log_following))
   if scores.adversarial is not None:
     out.update(aggregate_adversarial(scores.adversarial))
   return out

@@ -12,10 +12,16 @@ Two ways to use it from a Waymax-compatible loop:
 agents: the agents the encoder models at the start of the rollout (the SDC
 and up to A - 1 nearest it, valid at that step), minus the SDC, which follows
 its log (a fixed ego policy); every other object follows its log. The
-controlled set is fixed at `init`. Every `replan_every` steps the policy
-encodes the scene at the current step (its simulated history), samples a
-joint plan for all A agents with DDIM and decodes it into T actions
-[a, psi_dot] per agent; in between, it executes the plan's next action.
+controlled set is fixed at `init`, and every plan models it whole: the SDC,
+every controlled agent still alive, then the nearest other objects as
+context (`features.select_agents(keep=...)`), so a controlled agent is never
+dropped for a newcomer and its action is valid at every step while it is
+alive. Every `replan_every` steps the policy encodes the scene at the current
+step (its simulated history), samples a joint plan for all A agents with DDIM
+and decodes it into T actions [a, psi_dot] per agent; in between, it executes
+the plan's next action. With `warm_start`, each plan after the first starts
+from the previous one (advanced by the steps executed) instead of the
+proposal prior.
 """
 from __future__ import annotations
 
@@ -58,6 +64,15 @@ class PolicyConfig:
 
   prior_centre: "mean" starts DDIM around the mean of each agent's K proposal
   latents (the paper's prior); "top1" around its most likely proposal's.
+
+  warm_start: amortised replanning (SceneDiffuser's idea, in our latent): a
+  replan after the first takes each agent's previous plan, drops the actions
+  already executed, holds the last state for the freed tail (zero actions),
+  encodes it, noises it to diffusion step `warm_step` and denoises it with
+  `warm_ddim_steps` DDIM steps. Actions are [a, psi_dot], so the shifted
+  plan needs no change of frame: it continues from the agent's new state.
+  Agents without a previous plan start from the prior centre at the same
+  noise level; the first plan of a rollout is the cold `ddim_steps` sampler.
   """
   ddim_steps: int = 5
   eta: float = 0.0
@@ -68,6 +83,9 @@ class PolicyConfig:
   execute: str = "actions"
   track_steps: int = 5
   prior_centre: str = "mean"
+  warm_start: bool = False
+  warm_step: int = 30
+  warm_ddim_steps: int = 2
 
 
 @struct.dataclass
@@ -107,19 +125,39 @@ def _guide(models: Models, state: SimulatorState, feats, cond: planner.Condition
   return guidance_lib.make_guide(poses, agents, road, g)
 
 
+@struct.dataclass
+class WarmStart:
+  """A previous plan to start from: actions (O, T, 2) already advanced to the
+  current step (`advance_plan`) and which objects have one, has (O,)."""
+  actions: Array
+  has: Array
+
+
+def advance_plan(plan: Array, executed: Array) -> Array:
+  """(O, T, 2) the plan without its first `executed` actions (a traced int),
+  the freed tail holding the last state (zero actions)."""
+  horizon = plan.shape[1]
+  idx = executed + jnp.arange(horizon)                                       # (T,)
+  shifted = jnp.take(plan, jnp.clip(idx, 0, horizon - 1), axis=1)
+  return jnp.where((idx < horizon)[None, :, None], shifted, 0.0)
+
+
 def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: PolicyConfig,
                  rng: Array, adversary: Array = -1, noise: Optional[Array] = None,
-                 road: Optional[RoadField] = None) -> tuple[Array, Array, Array]:
+                 road: Optional[RoadField] = None, controlled: Optional[Array] = None,
+                 warm: Optional[WarmStart] = None) -> tuple[Array, Array, Array]:
   """A joint plan for one scene at its current step (guided by policy.guidance;
   `adversary`: the pursuer's object slot under adversarial guidance; noise
   (O, d): per-object initial noise, default drawn from rng; road: the scene's
-  road field, default built here, which costs a field per call).
+  road field, default built here, which costs a field per call; controlled
+  (O,): objects modelled first after the SDC, whatever their distance; warm:
+  a previous plan to start from (`PolicyConfig.warm_start`), else the prior).
 
   Returns actions (O, T, 2) per object (zeros where not planned), which
   objects got a plan (O,), and the planned positions (O, T, 2) in the world frame
   (zeros unless policy.execute is "track").
   """
-  feats = features_lib.scene_features(state, cfg.features)
+  feats = features_lib.scene_features(state, cfg.features, keep=controlled)
   batched = jax.tree_util.tree_map(lambda a: a[None], feats)
   cond = planner.condition(models.encoder, models.stats, batched, cfg)
   if policy.prior_centre == "top1":
@@ -127,11 +165,19 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
   if road is None:
     road = guidance_lib.road_of(state, policy.guidance)
   guide = _guide(models, state, batched, cond, cfg, policy.guidance, jnp.asarray(adversary, jnp.int32), road)
-  steps = policy.guidance.guide_steps(policy.ddim_steps) if guide is not None else None
   init_noise = None if noise is None else noise[feats.agent_index][None]   # (1, A, d)
-  y0 = planner.sample(models.denoiser, cond, cfg, rng, policy.ddim_steps, policy.eta,
-                      prior_init=policy.prior_init, guide=guide, guide_steps=steps,
-                      init_noise=init_noise)
+  if warm is None:
+    steps = policy.guidance.guide_steps(policy.ddim_steps) if guide is not None else None
+    y0 = planner.sample(models.denoiser, cond, cfg, rng, policy.ddim_steps, policy.eta,
+                        prior_init=policy.prior_init, guide=guide, guide_steps=steps,
+                        init_noise=init_noise)
+  else:
+    previous = latent.encode(warm.actions[feats.agent_index], models.stats)[None]   # (1, A, d)
+    centre = jnp.where(warm.has[feats.agent_index][None, :, None], previous, cond.mu)
+    steps = policy.guidance.guide_steps(policy.warm_ddim_steps) if guide is not None else None
+    y0 = planner.sample(models.denoiser, cond, cfg, rng, policy.warm_ddim_steps, policy.eta,
+                        prior_init=policy.prior_init, guide=guide, guide_steps=steps,
+                        init_noise=init_noise, centre=centre, start_step=policy.warm_step)
   actions = dynamics.clip_action(latent.decode(y0[0], models.stats), cfg.kinematics)  # (A, T, 2)
   if policy.execute == "track":   # the world-frame path is only needed to track it
     states = dynamics.rollout(latent.initial_states(cond.speed[0]), actions, cfg.kinematics.dt)
@@ -182,15 +228,7 @@ def reactive_set(state: SimulatorState, cfg: Config) -> Array:
 def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
   """The policy as an Actor (params = Models). One scenario per call: vmap
   the rollout for batches."""
-  if policy.replan_every < 1 or policy.replan_every > cfg.encoder.horizon:
-    raise ValueError(f"replan_every must be in [1, {cfg.encoder.horizon}], got {policy.replan_every}")
-  if policy.prior_centre not in ("mean", "top1"):
-    raise ValueError(f"prior_centre must be 'mean' or 'top1', got {policy.prior_centre!r}")
-  if policy.execute not in EXECUTE:
-    raise ValueError(f"execute must be one of {EXECUTE}, got {policy.execute!r}")
-  if not 2 <= policy.track_steps <= cfg.encoder.horizon:
-    raise ValueError(f"track_steps must be in [2, {cfg.encoder.horizon}], got {policy.track_steps}")
-  policy.guidance.validate()
+  validate(cfg, policy)
 
   def init(rng, state):
     num_objects = state.object_metadata.ids.shape[-1]
@@ -203,20 +241,29 @@ def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
                      noise=jax.random.normal(jax.random.fold_in(rng, 1), (num_objects, cfg.diffusion.latent_dim)),
                      road=guidance_lib.road_of(state, policy.guidance))
 
+  def replan(models, state, ps: PlanState, rng):
+    noise = ps.noise if policy.consistent_noise else None
+    cold = lambda: plan_actions(models, state, cfg, policy, rng, ps.adversary, noise, ps.road,
+                                controlled=ps.controlled)
+    if not policy.warm_start:
+      return cold()
+    warm = WarmStart(actions=advance_plan(ps.plan, ps.age), has=ps.plan_valid)
+    return jax.lax.cond(
+        jnp.any(ps.plan_valid & ps.controlled),
+        lambda: plan_actions(models, state, cfg, policy, rng, ps.adversary, noise, ps.road,
+                             controlled=ps.controlled, warm=warm),
+        cold)
+
   def select_action(models, state, ps: PlanState, rng):
-    replan = ps.age >= policy.replan_every
+    due = ps.age >= policy.replan_every
     plan, plan_valid, path = jax.lax.cond(
-        replan, lambda: plan_actions(models, state, cfg, policy, rng, ps.adversary,
-                                     ps.noise if policy.consistent_noise else None, ps.road),
-        lambda: (ps.plan, ps.plan_valid, ps.path))
-    age = jnp.where(replan, 0, ps.age)
+        due, lambda: replan(models, state, ps, rng), lambda: (ps.plan, ps.plan_valid, ps.path))
+    age = jnp.where(due, 0, ps.age)
     if policy.execute == "track":
       now = _track(state, path, age, policy.track_steps, cfg)
     else:
       now = jnp.take(plan, age, axis=1)                                  # (O, 2)
-    alive = state.current_sim_trajectory.valid[..., 0]
-    valid = ps.controlled & plan_valid & alive
-    action = Action(data=jnp.where(valid[:, None], now, 0.0), valid=valid[:, None])
+    action = _controlled_action(state, ps.controlled, plan_valid, now)
     new = ps.replace(plan=plan, plan_valid=plan_valid, path=path, age=age + 1)
     return ActorOutput(actor_state=new, action=action, is_controlled=ps.controlled)
 
@@ -224,16 +271,62 @@ def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
   return Actor(select_action=select_action, init=init, name=name)
 
 
-def step(state: SimulatorState, models: Models, cfg: Config, rng: Array,
-         policy: PolicyConfig = PolicyConfig(), road: Optional[RoadField] = None) -> tuple[Action, Array]:
-  """One replanning for one scenario: the first planned action of the reactive
-  agents (Action (O, 2), valid (O, 1)) and the controlled mask (O,). Under
-  guidance, pass road=`guidance.road_of(state, policy.guidance)` made once per
-  scenario to avoid rebuilding the road field at every call."""
-  controlled = reactive_set(state, cfg)
-  plan, planned, path = plan_actions(models, state, cfg, policy, rng,
-                                     pursuer_of(state, cfg, policy.guidance), road=road)
-  now = _track(state, path, 0, policy.track_steps, cfg) if policy.execute == "track" else plan[:, 0]
-  valid = controlled & planned & state.current_sim_trajectory.valid[..., 0]
-  return Action(data=jnp.where(valid[:, None], now, 0.0), valid=valid[:, None]), controlled
+def validate(cfg: Config, policy: PolicyConfig) -> None:
+  """Raises ValueError naming the first PolicyConfig field out of range."""
+  if policy.replan_every < 1 or policy.replan_every > cfg.encoder.horizon:
+    raise ValueError(f"replan_every must be in [1, {cfg.encoder.horizon}], got {policy.replan_every}")
+  if policy.prior_centre not in ("mean", "top1"):
+    raise ValueError(f"prior_centre must be 'mean' or 'top1', got {policy.prior_centre!r}")
+  if policy.execute not in EXECUTE:
+    raise ValueError(f"execute must be one of {EXECUTE}, got {policy.execute!r}")
+  if not 2 <= policy.track_steps <= cfg.encoder.horizon:
+    raise ValueError(f"track_steps must be in [2, {cfg.encoder.horizon}], got {policy.track_steps}")
+  if not 0 <= policy.warm_step < cfg.diffusion.num_steps:
+    raise ValueError(f"warm_step must be in [0, {cfg.diffusion.num_steps - 1}], got {policy.warm_step}")
+  if not 1 <= policy.warm_ddim_steps <= policy.warm_step + 1:
+    raise ValueError(f"warm_ddim_steps must be in [1, warm_step + 1 = {policy.warm_step + 1}], "
+                     f"got {policy.warm_ddim_steps}")
+  policy.guidance.validate()
 
+
+def controlled_or_default(state: SimulatorState, cfg: Config, controlled: Optional[Array] = None) -> Array:
+  """(O,) the objects a stateless caller controls: `controlled` if given, else
+  `state.object_metadata.is_controlled` where the caller set any, else the
+  reactive set (`reactive_set`)."""
+  if controlled is not None:
+    return jnp.asarray(controlled, bool)
+  marked = state.object_metadata.is_controlled
+  return jnp.where(jnp.any(marked), marked, reactive_set(state, cfg))
+
+
+def step(state: SimulatorState, models: Models, cfg: Config, rng: Array,
+         policy: PolicyConfig = PolicyConfig(), road: Optional[RoadField] = None,
+         controlled: Optional[Array] = None) -> tuple[Action, Array]:
+  """One replanning for one scenario: the first planned action of the
+  controlled agents (Action (O, 2), valid (O, 1)) and the controlled mask (O,).
+
+  `step` keeps no memory between calls, so the caller says which agents it
+  controls: `controlled` (O,) bool, by default `state.object_metadata.
+  is_controlled` where any is set (as after `sim.step`), else the reactive set
+  at this step. Those agents are modelled first (after the SDC), so a caller
+  that passes the same mask at every step keeps the same agents; past the
+  model's cap (`cfg.features.max_agents`, the SDC included) the farthest keep
+  their speed and heading (zero action). Under guidance, pass
+  road=`guidance.road_of(state, policy.guidance)` made once per scenario to
+  avoid rebuilding the road field at every call. A stateless call always
+  plans cold (no warm start)."""
+  controlled = controlled_or_default(state, cfg, controlled)
+  plan, planned, path = plan_actions(models, state, cfg, policy, rng,
+                                     pursuer_of(state, cfg, policy.guidance), road=road,
+                                     controlled=controlled)
+  now = _track(state, path, 0, policy.track_steps, cfg) if policy.execute == "track" else plan[:, 0]
+  return _controlled_action(state, controlled, planned, now), controlled
+
+
+def _controlled_action(state: SimulatorState, controlled: Array, planned: Array, now: Array) -> Action:
+  """Action (O, 2): the plan's for planned agents; a controlled agent the plan
+  missed (more controlled agents than the model's cap) keeps its speed and
+  heading (zero action) rather than vanish. Valid for every controlled agent
+  alive at this step."""
+  valid = controlled & state.current_sim_trajectory.valid[..., 0]
+  return Action(data=jnp.where((valid & planned)[:, None], now, 0.0), valid=valid[:, None])

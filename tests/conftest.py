@@ -1,6 +1,7 @@
 """Shared fixtures: the real WOMD record (from ../shared) and tiny hand-built scenes."""
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 
@@ -90,6 +91,29 @@ def make_scene(num_objects: int = 4, num_steps: int = 31, speeds=(10.0, 8.0, 0.0
                       is_controlled=jnp.zeros(num_objects, bool))
   return SimulatorState(sim_trajectory=traj, log_trajectory=traj, log_traffic_light=lights,
                         object_metadata=md, timestep=jnp.int32(0), roadgraph_points=rg)
+
+
+@pytest.fixture(scope="session")
+def tiny_models():
+  """Untrained tiny models with a latent fitted on make_scene (weights do not
+  matter where this is used)."""
+  from pcdiff_jax.config import get_config
+  from pcdiff_jax.model import denoiser as denoiser_lib
+  from pcdiff_jax.model import encoder, planner
+  from pcdiff_jax.training import data as data_lib
+  from pcdiff_jax.training import diffusion_stage
+  cfg = get_config("tiny")
+  state = make_scene(num_steps=91)
+  ex = jax.tree_util.tree_map(lambda a: a[None], data_lib.example_at(state, 10, cfg.features, 80))
+  enc = encoder.init(jax.random.key(0), ex.feats, cfg.encoder)
+  # make_scene's logs are straight at constant speed: fit on the (random)
+  # proposals too, so that latents decode into actions of a real size.
+  with_props = dataclasses.replace(cfg, diffusion=dataclasses.replace(cfg.diffusion, pca_proposal_weight=0.5))
+  stats = diffusion_stage.fit_latent(enc, with_props, ex, 1, batch_size=1)
+  cond = planner.condition(enc, stats, ex.feats, cfg)
+  one = jax.tree_util.tree_map(lambda a: a[0], cond.inputs)
+  den = denoiser_lib.init(jax.random.key(1), cond.mu[0], jnp.int32(0), one, cfg.diffusion.denoiser)
+  return planner.Models(encoder=enc, denoiser=den, stats=stats)
 
 
 @pytest.fixture

@@ -95,3 +95,28 @@ def test_prior_from_proposals():
   mu, sigma = D.prior_from_proposals(props, 0.3)
   np.testing.assert_allclose(np.asarray(mu), [[1.0, 1.0]])
   np.testing.assert_allclose(np.asarray(sigma), [[1.3, 0.3]])
+
+
+def test_warm_start_keeps_a_consistent_plan_and_starts_where_asked():
+  """A warm start noises `mu` (the previous plan) only to `start_step` and
+  denoises from there: a plan the data agrees with stays put, whatever the
+  noise draw, while a cold start lands anywhere in the data distribution."""
+  m, c = jnp.array([1.0, -2.0]), jnp.array([0.5, 0.4])
+  sigma = jnp.array([0.8, 1.0])
+  n = 4000
+  den = _gaussian_denoiser(m, c, sigma)
+  plan = jnp.broadcast_to(m + jnp.array([0.3, -0.2]), (n, 2))       # a plausible plan, off the mean
+  sig = jnp.broadcast_to(sigma, (n, 2))
+  drift = lambda out: float(np.abs(np.asarray(out) - np.asarray(plan)).mean())
+  warm = lambda s: drift(D.ddim_sample(den, plan, sig, SCHED, jax.random.key(0), 2, start_step=s))
+  cold = drift(D.ddim_sample(den, jnp.broadcast_to(m, (n, 2)), sig, SCHED, jax.random.key(0), 5))
+  # The less noise, the closer to the previous plan; all closer than a fresh sample.
+  assert warm(2) < warm(10) < warm(20) < warm(40) < cold and warm(2) < 0.05
+  # At step 0 the chain is the plan itself up to the first noise level (sqrt(1 - abar_0) = 1%).
+  zero = D.ddim_sample(lambda y, s: jnp.zeros_like(y), plan, sig, SCHED, jax.random.key(1), 1, start_step=0)
+  np.testing.assert_allclose(np.asarray(zero), np.asarray(plan), atol=0.06)
+  np.testing.assert_array_equal(D.ddim_timesteps(100, 2, start_step=30), [30, 0])
+  with pytest.raises(ValueError, match="start step"):
+    D.ddim_timesteps(100, 2, start_step=100)
+  with pytest.raises(ValueError, match="DDIM steps"):
+    D.ddim_timesteps(100, 5, start_step=3)

@@ -20,16 +20,8 @@ CFG = get_config("tiny")
 
 
 @pytest.fixture(scope="module")
-def models():
-  """Untrained tiny models with a latent fitted on make_scene (weights do not matter here)."""
-  state = make_scene(num_steps=91)
-  ex = jax.tree_util.tree_map(lambda a: a[None], data_lib.example_at(state, 10, CFG.features, 80))
-  enc = encoder.init(jax.random.key(0), ex.feats, CFG.encoder)
-  stats = diffusion_stage.fit_latent(enc, CFG, ex, 1, batch_size=1)
-  cond = planner.condition(enc, stats, ex.feats, CFG)
-  one = jax.tree_util.tree_map(lambda a: a[0], cond.inputs)
-  den = denoiser_lib.init(jax.random.key(1), cond.mu[0], jnp.int32(0), one, CFG.diffusion.denoiser)
-  return planner.Models(encoder=enc, denoiser=den, stats=stats)
+def models(tiny_models):
+  return tiny_models
 
 
 def _scenes(speeds_list):
@@ -193,3 +185,29 @@ def test_prior_centred_on_the_top_mode(models):
   assert bool(jnp.all(jnp.isfinite(plan)))
   with pytest.raises(ValueError, match="prior_centre"):
     policy.actor(CFG, policy.PolicyConfig(prior_centre="median"))
+
+
+def test_warm_start_advances_the_previous_plan(models):
+  plan = jnp.arange(2 * 5 * 2, dtype=jnp.float32).reshape(2, 5, 2)       # (O, T, 2)
+  out = np.asarray(policy.advance_plan(plan, jnp.int32(2)))
+  np.testing.assert_array_equal(out[:, :3], np.asarray(plan[:, 2:]))
+  np.testing.assert_array_equal(out[:, 3:], 0.0)                        # the freed tail holds
+  np.testing.assert_array_equal(np.asarray(policy.advance_plan(plan, jnp.int32(0))), np.asarray(plan))
+  # In closed loop: the first plan is cold, the next ones warm; one program.
+  state = env.reset(make_scene(num_steps=91))
+  pcfg = policy.PolicyConfig(ddim_steps=2, warm_start=True, warm_step=0, warm_ddim_steps=1)
+  act = policy.actor(CFG, pcfg)
+  ps = act.init(jax.random.key(0), state)
+  select = jax.jit(act.select_action)
+  first = select(models, state, ps, jax.random.key(1))
+  state2 = env.step(state, first.action, first.is_controlled)
+  second = select(models, state2, first.actor_state, jax.random.key(2))
+  assert select._cache_size() == 1
+  # warm_step 0: the new plan is the old one advanced by a step, through the latent projection.
+  controlled = np.asarray(first.actor_state.controlled)
+  old = np.asarray(policy.advance_plan(first.actor_state.plan, jnp.int32(1)))[controlled]
+  new = np.asarray(second.actor_state.plan)[controlled]
+  cold = policy.plan_actions(models, state2, CFG, policy.PolicyConfig(ddim_steps=2), jax.random.key(2))[0]
+  assert np.abs(new - old).mean() < np.abs(np.asarray(cold)[controlled] - old).mean()
+  with pytest.raises(ValueError, match="warm_ddim_steps"):
+    policy.actor(CFG, policy.PolicyConfig(warm_start=True, warm_step=1, warm_ddim_steps=3))

@@ -19,6 +19,7 @@ first inverse action), replanning at 10 Hz like ours.
 from __future__ import annotations
 
 import dataclasses
+from typing import Optional
 
 import jax
 import jax.numpy as jnp
@@ -39,6 +40,8 @@ class SimplARConfig:
   sweeps: int = 2
   min_prob: float = 1e-3           # eps
   track_steps: int = 5             # the executed action tracks the chosen proposal 0.5 s ahead
+  sample: bool = False             # draw the modes by their probabilities (Gumbel) instead of the top mode
+  temperature: float = 1.0         # of the sampled modes' log-probabilities
 
 
 def tracking_action(path: Array, speed: Array, cfg: SimplARConfig, dt: float = 0.1) -> Array:
@@ -83,10 +86,18 @@ def collision_counts(xy: Array, yaw: Array, length: Array, width: Array, valid: 
   return jnp.where(pair[:, None, :, None], hits, 0.0)
 
 
-def select_modes(probs: Array, coll: Array, valid: Array, cfg: SimplARConfig) -> Array:
-  """Iterated conditional modes on the joint objective. probs (A, K) -> modes (A,)."""
+def select_modes(probs: Array, coll: Array, valid: Array, cfg: SimplARConfig,
+                 rng: Optional[Array] = None) -> Array:
+  """Iterated conditional modes on the joint objective. probs (A, K) -> modes (A,).
+
+  With `cfg.sample` (and an rng) the unary term is -log p / temperature minus
+  Gumbel noise: without collisions each agent's mode is then a draw from its
+  probabilities (the Gumbel-max trick), so repeated rollouts differ; with
+  collisions ICM resolves them around that draw."""
   unary = -jnp.log(jnp.maximum(probs, cfg.min_prob))                         # (A, K)
-  modes = jnp.argmax(probs, -1)
+  if cfg.sample and rng is not None:
+    unary = unary / cfg.temperature - jax.random.gumbel(rng, unary.shape)
+  modes = jnp.argmin(unary, -1)
   num = probs.shape[0]
 
   def update(i, modes):
@@ -101,9 +112,12 @@ def select_modes(probs: Array, coll: Array, valid: Array, cfg: SimplARConfig) ->
   return jax.lax.fori_loop(0, num * cfg.sweeps, lambda n, m: update(order[n % num], m), modes)
 
 
-def plan_actions(encoder_params, state, cfg: Config, ar: SimplARConfig) -> tuple[Array, Array]:
-  """(O, 2) the action tracking each object's chosen mode and (O,) planned mask, one scene."""
-  feats = features_lib.scene_features(state, cfg.features)
+def plan_actions(encoder_params, state, cfg: Config, ar: SimplARConfig,
+                 controlled: Optional[Array] = None, rng: Optional[Array] = None) -> tuple[Array, Array]:
+  """(O, 2) the action tracking each object's chosen mode and (O,) planned mask,
+  one scene. controlled (O,): modelled first after the SDC (never dropped for
+  a closer newcomer); rng: the mode draw of `ar.sample`."""
+  feats = features_lib.scene_features(state, cfg.features, keep=controlled)
   out = encoder.apply(encoder_params, feats, cfg.encoder)
   speed = planner.agent_speed(feats)
   actions = latent.actions_from_positions(out.trajectories, speed[:, None], cfg.kinematics)  # (A,K,T,2)
@@ -113,7 +127,7 @@ def plan_actions(encoder_params, state, cfg: Config, ar: SimplARConfig) -> tuple
                                         feats)
   length, width = planner.agent_size(feats)
   coll = collision_counts(xy, yaw, length, width, feats.agent_valid)
-  modes = select_modes(out.probs, coll, feats.agent_valid, ar)
+  modes = select_modes(out.probs, coll, feats.agent_valid, ar, rng)
   chosen = jnp.take_along_axis(out.trajectories, modes[:, None, None, None], 1)[:, 0]  # (A, T, 2)
   action = dynamics.clip_action(tracking_action(chosen, speed, ar, cfg.kinematics.dt), cfg.kinematics)
   num_objects = state.object_metadata.ids.shape[-1]
@@ -123,14 +137,15 @@ def plan_actions(encoder_params, state, cfg: Config, ar: SimplARConfig) -> tuple
 
 
 def simpl_ar(cfg: Config, ar: SimplARConfig = SimplARConfig()) -> Actor:
-  """The SIMPL-AR baseline as an Actor; params = the stage-1 encoder parameters."""
+  """The SIMPL-AR baseline as an Actor; params = the stage-1 encoder parameters.
+  The controlled set is fixed at `init` (the policy's reactive set) and
+  modelled whole at every step."""
   from pcdiff_jax.policy import reactive_set
 
   def select_action(params, state, controlled, rng):
-    del rng
-    plan, planned = plan_actions(params, state, cfg, ar)
-    valid = controlled & planned & state.current_sim_trajectory.valid[..., 0]
-    data = jnp.where(valid[:, None], plan, 0.0)
+    plan, planned = plan_actions(params, state, cfg, ar, controlled, rng)
+    valid = controlled & state.current_sim_trajectory.valid[..., 0]
+    data = jnp.where((valid & planned)[:, None], plan, 0.0)   # beyond the model's cap: hold (zero action)
     return ActorOutput(actor_state=controlled, action=Action(data=data, valid=valid[:, None]),
                        is_controlled=controlled)
 

@@ -41,7 +41,8 @@ def log_replay() -> Actor:
 
 
 def expert(dynamics: Any = KinematicModel(), controlled_fn: ControlledFn = reactive_agents()) -> Actor:
-  """Controls objects with the dynamics' inverse towards their logged next step.
+  """Controls objects with the dynamics' inverse towards their logged next step
+  (a zero action where the log has none).
 
   The controlled set is fixed when the rollout starts (`init`). Objects move
   by the simulator's dynamics, so this measures how well that
@@ -49,9 +50,15 @@ def expert(dynamics: Any = KinematicModel(), controlled_fn: ControlledFn = react
   """
   def select_action(params, state, actor_state, rng):
     del params, rng
-    action = dynamics.inverse(state.current_sim_trajectory,
-                              slice_time(state.log_trajectory, state.timestep + 1))
-    return ActorOutput(actor_state=actor_state, action=action, is_controlled=actor_state)
+    current = state.current_sim_trajectory
+    target = slice_time(state.log_trajectory, state.timestep + 1)
+    action = dynamics.inverse(current, target)
+    # Where the log has no next step the object holds its motion (zero
+    # action) instead of vanishing: a controlled object stays alive.
+    alive = current.valid & actor_state[..., None]                       # (..., O, 1)
+    data = jnp.where(target.valid & alive, action.data, 0.0)
+    return ActorOutput(actor_state=actor_state, action=Action(data=data, valid=alive),
+                       is_controlled=actor_state)
   return Actor(select_action=select_action, init=_fixed_set(controlled_fn), name="expert")
 
 

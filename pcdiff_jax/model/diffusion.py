@@ -91,22 +91,30 @@ def predict_y0(y_s: Array, s: Array, scaled_noise: Array, schedule: Schedule) ->
   return (y_s - jnp.sqrt(1.0 - a) * scaled_noise) / jnp.sqrt(a)
 
 
-def initial_sample(mu: Array, sigma: Array, noise: Array, schedule: Schedule) -> Array:
-  """The shifted Gaussian sqrt(abar_S) mu + sqrt(1 - abar_S) sigma eps."""
-  return q_sample(mu, jnp.asarray(schedule.num_steps - 1), noise, sigma, schedule)
+def initial_sample(mu: Array, sigma: Array, noise: Array, schedule: Schedule,
+                   start_step: Optional[int] = None) -> Array:
+  """The shifted Gaussian sqrt(abar_s) mu + sqrt(1 - abar_s) sigma eps at
+  s = start_step (default S - 1, the end of the forward process)."""
+  s = schedule.num_steps - 1 if start_step is None else start_step
+  return q_sample(mu, jnp.asarray(s), noise, sigma, schedule)
 
 
-def ddim_timesteps(num_steps: int, num_sample_steps: int) -> np.ndarray:
-  """Descending steps (n,) from S-1 (to 0 when n > 1), evenly spaced (static, numpy)."""
-  if not 1 <= num_sample_steps <= num_steps:
-    raise ValueError(f"DDIM steps must be in [1, {num_steps}], got {num_sample_steps}")
-  steps = np.round(np.linspace(num_steps - 1, 0, num_sample_steps)).astype(np.int32)
+def ddim_timesteps(num_steps: int, num_sample_steps: int, start_step: Optional[int] = None) -> np.ndarray:
+  """Descending steps (n,) from `start_step` (default S-1) to 0 when n > 1,
+  evenly spaced (static, numpy)."""
+  start = num_steps - 1 if start_step is None else start_step
+  if not 0 <= start < num_steps:
+    raise ValueError(f"the start step must be in [0, {num_steps - 1}], got {start}")
+  if not 1 <= num_sample_steps <= start + 1:
+    raise ValueError(f"DDIM steps must be in [1, {start + 1}], got {num_sample_steps}")
+  steps = np.round(np.linspace(start, 0, num_sample_steps)).astype(np.int32)
   return np.unique(steps)[::-1].copy()
 
 
 def ddim_sample(denoise: DenoiseFn, mu: Array, sigma: Array, schedule: Schedule, rng: Array,
                 num_sample_steps: int, eta: float = 0.0, guide: Optional[GuideFn] = None,
-                guide_steps: Optional[np.ndarray] = None, init_noise: Optional[Array] = None) -> Array:
+                guide_steps: Optional[np.ndarray] = None, init_noise: Optional[Array] = None,
+                start_step: Optional[int] = None) -> Array:
   """DDIM from the shifted Gaussian; returns y_0 (..., d).
 
   Args:
@@ -115,8 +123,12 @@ def ddim_sample(denoise: DenoiseFn, mu: Array, sigma: Array, schedule: Schedule,
     num_sample_steps: n (static); eta: 0 deterministic, 1 DDPM-like.
     guide: optional hook editing the y0 estimate; guide_steps: (n,) bool,
       which of the n steps (in sampling order) call it (default: none).
+    start_step: the diffusion step the chain starts from (static; default
+      S - 1). A warm start noises a previous plan `mu` only to an
+      intermediate step and denoises from there (SceneDiffuser's amortised
+      rollout, done in the latent): mu stays where the data agrees with it.
   """
-  steps = ddim_timesteps(schedule.num_steps, num_sample_steps)
+  steps = ddim_timesteps(schedule.num_steps, num_sample_steps, start_step)
   prev = np.concatenate([steps[1:], [-1]]).astype(np.int32)
   use_guide = np.zeros(len(steps), bool) if guide_steps is None else np.asarray(guide_steps, bool)
   if use_guide.shape != steps.shape:
@@ -124,7 +136,7 @@ def ddim_sample(denoise: DenoiseFn, mu: Array, sigma: Array, schedule: Schedule,
   rng_init, rng_steps = jax.random.split(rng)
   if init_noise is None:
     init_noise = jax.random.normal(rng_init, mu.shape, mu.dtype)
-  y = initial_sample(mu, sigma, init_noise, schedule)
+  y = initial_sample(mu, sigma, init_noise, schedule, int(steps[0]))
 
   def body(y, inputs):
     s, p, g, i, key = inputs

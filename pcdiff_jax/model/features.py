@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import enum
 import math
+from typing import Optional
 
 import chex
 import jax
@@ -52,6 +53,7 @@ AGENT_DIM = len(AGENT_CHANNELS)
 NUM_MAP_TYPES = 20          # WOMD roadgraph codes 0..19
 NUM_LIGHT_STATES = 10       # 0: no light; 1 + TrafficLightState (0..8)
 _DIST_QUANTUM = 0.01        # m; ranking ties within it are broken by index (stable under rounding)
+_OTHERS_RANK = 1e7          # m; added to the distance of objects outside `keep` in select_agents
 
 
 class MapKind(enum.IntEnum):
@@ -197,11 +199,15 @@ def _scene_pose(state: SimulatorState) -> tuple[Array, Array]:
   return xy, yaw
 
 
-def select_agents(state: SimulatorState, max_agents: int) -> tuple[Array, Array]:
-  """Object slots of the agents to model: the SDC first, then nearest the SDC.
+def select_agents(state: SimulatorState, max_agents: int,
+                  keep: Optional[Array] = None) -> tuple[Array, Array]:
+  """Object slots of the agents to model: the SDC first, then the objects of
+  `keep` (O,) bool (the agents a policy controls: they are never dropped for a
+  closer newcomer), then the others, nearest the SDC first within each group.
 
-  The same set as `sim.selection.nearest_to_sdc(state, max_agents,
-  include_sdc=True)`, in rank order. One scene.
+  Without `keep`, the same set as `sim.selection.nearest_to_sdc(state,
+  max_agents, include_sdc=True)`, in rank order. Only objects valid at the
+  current step are chosen. One scene.
   Returns: index (A,) int32 (in range everywhere), valid (A,) bool.
   """
   cur = state.current_sim_trajectory
@@ -210,6 +216,8 @@ def select_agents(state: SimulatorState, max_agents: int) -> tuple[Array, Array]
   xy = cur.xy[:, 0]                                        # (O, 2)
   sdc_xy = jnp.sum(jnp.where(is_sdc[:, None], xy, 0.0), axis=0)
   dist = jnp.linalg.norm(xy - sdc_xy, axis=-1)
+  if keep is not None:   # a group rank below every distance keeps them ahead of the others
+    dist = jnp.where(keep, dist, dist + _OTHERS_RANK)
   dist = jnp.where(valid, dist, jnp.inf)
   dist = jnp.where(is_sdc & valid, -1.0, dist)
   order = jnp.argsort(dist, stable=True)
@@ -422,9 +430,10 @@ def _map_features(state: SimulatorState, config: FeaturesConfig, scene_xy: Array
 # Entry point.
 
 
-def _scene_features_one(state: SimulatorState, config: FeaturesConfig) -> SceneFeatures:
+def _scene_features_one(state: SimulatorState, config: FeaturesConfig,
+                        keep: Optional[Array] = None) -> SceneFeatures:
   scene_xy, scene_yaw = _scene_pose(state)
-  index, valid = select_agents(state, config.max_agents)
+  index, valid = select_agents(state, config.max_agents, keep)
   hist, hv, types, centre, direction = _agent_features(
       state, index, valid, config.history_steps, scene_xy, scene_yaw)
   return SceneFeatures(
@@ -434,7 +443,8 @@ def _scene_features_one(state: SimulatorState, config: FeaturesConfig) -> SceneF
       scene_xy=scene_xy, scene_yaw=scene_yaw, timestep=jnp.asarray(state.timestep, jnp.int32))
 
 
-def scene_features(state: SimulatorState, config: FeaturesConfig) -> SceneFeatures:
+def scene_features(state: SimulatorState, config: FeaturesConfig,
+                   keep: Optional[Array] = None) -> SceneFeatures:
   """Builds the encoder's instances from `state` at its step t = `state.timestep`.
 
   Args:
@@ -442,16 +452,20 @@ def scene_features(state: SimulatorState, config: FeaturesConfig) -> SceneFeatur
       per scenario).
     config: padded sizes A = max_agents, H = history_steps, M = max_polylines,
       P = points_per_polyline, and the piece length L = segment_length.
+    keep: optional (..., O) bool, objects modelled before any other after the
+      SDC (`select_agents`): a policy's controlled agents.
   Returns:
     SceneFeatures with batch dims `...` (see its docstring for shapes).
   Not jitted: jit at the entry point that calls it.
   """
   batch = state.shape
   chex.assert_shape(state.timestep, batch)
-  fn = lambda s: _scene_features_one(s, config)
+  given = keep is not None
+  keep = keep if given else jnp.zeros(state.object_metadata.ids.shape, bool)
+  fn = lambda s, k: _scene_features_one(s, config, k if given else None)
   for _ in batch:
     fn = jax.vmap(fn)
-  out = fn(state)
+  out = fn(state, keep)
   a, h, m, p = (config.max_agents, config.history_steps, config.max_polylines,
                 config.points_per_polyline)
   chex.assert_shape(out.agent_history, batch + (a, h, AGENT_DIM))

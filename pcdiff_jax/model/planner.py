@@ -106,22 +106,27 @@ def schedule_of(cfg: Config) -> diffusion.Schedule:
 def sample(denoiser_params: Any, cond: Conditioning, cfg: Config, rng: Array,
            num_steps: Optional[int] = None, eta: Optional[float] = None,
            prior_init: bool = True, guide=None, guide_steps=None,
-           init_noise: Optional[Array] = None) -> Array:
+           init_noise: Optional[Array] = None, centre: Optional[Array] = None,
+           start_step: Optional[int] = None) -> Array:
   """DDIM joint plans (B, A, d) for a batch of scenes.
 
   prior_init False starts from N(0, I) with unit noise scale (the no-prior
   variant); the denoiser still reads whatever tokens its config uses.
   init_noise (B, A, d): the unit noise of the initial sample (default: drawn from rng).
+  centre (B, A, d) and start_step (static): a warm start, the chain starts
+  from `centre` noised to `start_step` (`diffusion.ddim_sample`).
   """
   d = cfg.diffusion
   num_steps = d.ddim_steps if num_steps is None else num_steps
   eta = d.eta if eta is None else eta
   mu, sigma = (cond.mu, cond.sigma) if prior_init else diffusion.standard_prior(cond.mu.shape)
+  mu = mu if centre is None else centre
 
   def denoise(y, s):
     return denoiser_lib.apply(denoiser_params, y, s, cond.inputs, d.denoiser)
   return diffusion.ddim_sample(denoise, mu, sigma, schedule_of(cfg), rng, num_steps, eta,
-                               guide=guide, guide_steps=guide_steps, init_noise=init_noise)
+                               guide=guide, guide_steps=guide_steps, init_noise=init_noise,
+                               start_step=start_step)
 
 
 def decode_states(stats: LatentStats, cond: Conditioning, y0: Array, cfg: Config) -> Array:

@@ -4,7 +4,8 @@ Needs a trained stage-1 encoder in WORKDIR/encoder (frozen). `train`:
 
 1. fits the latent (`model.latent.fit`) on the first `pca_fit_scenes`
    training examples: the logged futures of agents valid over the whole
-   horizon and the K proposals of every valid agent, half the weight each;
+   horizon, their recovery futures (`training.perturb`) and, with
+   `diffusion.pca_proposal_weight`, the K proposals of every valid agent;
 2. trains the denoiser with loss = w_diff * mean ||n_hat - sigma eps||^2 +
    w_state * SmoothL1 on (x, y, psi) of the rollout of the decoded one-step
    estimate y0_hat, both over agents with a fully valid future (the others
@@ -33,7 +34,7 @@ from pcdiff_jax.model import diffusion, encoder, latent, planner
 from pcdiff_jax.model.planner import Conditioning, Models
 from pcdiff_jax.sim import geometry
 from pcdiff_jax.training import data as data_lib
-from pcdiff_jax.training import encoder_stage, trainer
+from pcdiff_jax.training import encoder_stage, perturb, trainer
 from pcdiff_jax.training.data import Example
 
 
@@ -61,29 +62,40 @@ def logged_actions(batch: Example, cfg: Config) -> tuple[jax.Array, jax.Array]:
 
 def fit_latent(encoder_params: Any, cfg: Config, examples: Example, num_scenes: int,
                batch_size: int = 8, dim: Optional[int] = None) -> latent.LatentStats:
-  """PCA latent from logged futures and proposals of the first `num_scenes` examples."""
+  """PCA latent of the first `num_scenes` examples: their logged futures, the
+  recovery futures that `diffusion_train.perturb` trains on (drawn with a
+  fixed key), and the K proposals with `diffusion.pca_proposal_weight` of the
+  total weight."""
+  pcfg = cfg.diffusion_train.perturb
+
   @jax.jit
-  def collect(batch: Example):
+  def collect(batch: Example, rng):
     actions, full = logged_actions(batch, cfg)
+    moved = perturb.perturb(batch, rng, pcfg, cfg.kinematics.dt)
+    moved_actions, moved_full = logged_actions(moved, cfg)
     out = encoder.apply(encoder_params, batch.feats, cfg.encoder)
     props = latent.actions_from_positions(out.trajectories, planner.agent_speed(batch.feats)[..., None],
                                           cfg.kinematics)                       # (B, A, K, T, 2)
-    return actions, full, props, batch.feats.agent_valid
+    changed = jnp.any(moved.feats.agent_center != batch.feats.agent_center, -1)   # (B, A)
+    return actions, full, moved_actions, moved_full & changed, props, batch.feats.agent_valid
 
   logs, props = [], []
   sub = jax.tree_util.tree_map(lambda a: a[:num_scenes], examples)
-  for batch, mask in data_lib.eval_batches(sub, batch_size):
-    a, full, p, valid = jax.device_get(collect(batch))
-    logs.append(a[full & mask[:, None]])
+  for i, (batch, mask) in enumerate(data_lib.eval_batches(sub, batch_size)):
+    a, full, ma, mfull, p, valid = jax.device_get(collect(batch, jax.random.key(i)))
+    logs += [a[full & mask[:, None]], ma[mfull & mask[:, None]]]
     props.append(p[valid & mask[:, None]].reshape((-1,) + p.shape[-2:]))
   logs, props = np.concatenate(logs), np.concatenate(props)
   if not len(logs):
     raise ValueError("no agent with a fully valid future in the latent fit scenes")
-  # Logs and proposals get half the weight each: proposals outnumber logs K
-  # to 1 and carry a first-step speed jump (they need not start at the
-  # agent's speed), which would otherwise take the components from the
-  # smooth modes the logged futures need (measured in docs/RESULTS.md).
-  weights = np.concatenate([np.full(len(logs), 0.5 / len(logs)), np.full(len(props), 0.5 / len(props))])
+  # Proposals outnumber logs K to 1, and the mean of their modes is not a
+  # mode: fitted half on proposals, the PCA mean started with a right turn
+  # (docs/RESULTS.md), so by default the latent is fitted on futures only.
+  w_prop = cfg.diffusion.pca_proposal_weight
+  if w_prop <= 0.0:
+    return latent.fit(logs, cfg.diffusion.latent_dim if dim is None else dim)
+  weights = np.concatenate([np.full(len(logs), (1 - w_prop) / len(logs)),
+                            np.full(len(props), w_prop / len(props))])
   return latent.fit(np.concatenate([logs, props]), cfg.diffusion.latent_dim if dim is None else dim,
                     weights=weights)
 
@@ -210,7 +222,10 @@ def train(cfg: Config, train_examples: Example, val_examples: Optional[Example],
                              cfg.diffusion.denoiser)
   tx = trainer.make_optimizer(tc)
   state = trainer.create_state(params, tx, tc.seed, extra=extra)
-  loss_fn = lambda p, e, b, r: diffusion_loss(p, e, b, r, cfg)
+  def loss_fn(params, extra, batch, rng):
+    rng, k_perturb = jax.random.split(rng)
+    batch = perturb.perturb(batch, k_perturb, tc.perturb, cfg.kinematics.dt)
+    return diffusion_loss(params, extra, batch, rng, cfg)
   step_fn = trainer.make_train_step(loss_fn, tx, with_extra=True)
   evaluate = None
   if val_examples is not None:

@@ -18,7 +18,7 @@ from pcdiff_jax import config as config_lib
 from pcdiff_jax.config import Config
 from pcdiff_jax.model import encoder
 from pcdiff_jax.training import data as data_lib
-from pcdiff_jax.training import encoder_loss, trainer
+from pcdiff_jax.training import encoder_loss, perturb, trainer
 from pcdiff_jax.training.data import Example
 
 STAGE_DIR = "encoder"
@@ -32,7 +32,10 @@ def cache_spec(cfg: Config) -> data_lib.CacheSpec:
 
 
 def make_loss_fn(cfg: Config):
+  """Training loss; batches get the recovery examples of `encoder_train.perturb`."""
   def loss_fn(params, batch: Example, rng):
+    rng, k_perturb = jax.random.split(rng)
+    batch = perturb.perturb(batch, k_perturb, cfg.encoder_train.perturb, cfg.kinematics.dt)
     out = encoder.apply(params, batch.feats, cfg.encoder, rng=rng)
     return encoder_loss.proposal_loss(out, batch.targets, cls_weight=cfg.encoder_train.cls_weight)
   return loss_fn
