@@ -208,9 +208,14 @@ def bench_fused_vs_loop(state, cfg, num_steps: int, repeats: int) -> dict:
 
   jax.block_until_ready(python_loop(start, rng, models))          # compile
   loop_times = _time(lambda: python_loop(start, rng, models), repeats)
+  # Warm-started replanning (PolicyConfig defaults: 2 DDIM steps from step 30 after the first plan).
+  warm = policy.actor(cfg, policy.PolicyConfig(ddim_steps=cfg.diffusion.ddim_steps, warm_start=True))
+  warm_t = _compiled_ms(lambda s, r, m: env.rollout(s, warm, num_steps, r, params=m).final_state,
+                        (start, rng, models), repeats)
   return {"agents": cfg.features.max_agents, "steps": num_steps,
           "fused_ms_per_step": fused_t["ms"] / num_steps, "fused_compile_s": fused_t["compile_s"],
-          "loop_ms_per_step": 1000 * float(np.median(loop_times)) / num_steps}
+          "loop_ms_per_step": 1000 * float(np.median(loop_times)) / num_steps,
+          "fused_warm_start_ms_per_step": warm_t["ms"] / num_steps}
 
 
 def bench_policy(path: str, preset: str, agent_counts: list[int], ddim_steps: list[int],

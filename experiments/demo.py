@@ -1,10 +1,13 @@
 """The main job on the built-in data, end to end (README quickstart: `make demo`).
 
-  python -m experiments.demo --out runs/demo
+  python -m experiments.demo --out runs/demo            # the shipped model (checkpoints/)
+  python -m experiments.demo --out runs/demo --train    # train the `demo` preset from scratch first
 
-1. generates synthetic scenes in the WOMD tf.Example schema (OUT/data),
-2. trains stage 1 (scene encoder) and stage 2 (PCA latent + denoiser) with
-   the `demo` preset (OUT/model),
+1. generates synthetic val scenes in the WOMD tf.Example schema (OUT/data;
+   with --train, training scenes too),
+2. loads the shipped model (`pcdiff_jax.pretrained`, checkpoints/ and its
+   MODEL_CARD.md) or, with --train, trains stage 1 (scene encoder) and
+   stage 2 (PCA latent + denoiser) with --config (OUT/model),
 3. rolls out ours, SIMPL-AR, IDM and constant velocity in closed loop on
    the val scenes, 80 steps at 10 Hz (OUT/eval/METHOD: metrics, GIFs),
 4. prints the metrics table and writes it to OUT/table.md,
@@ -12,9 +15,9 @@
    (`--real`, default ../shared/data/womd/...; OUT/eval/real-pcdiff).
 
 Every step resumes: re-running skips finished shards, continues training from
-the last checkpoint and re-evaluates. The demo preset is sized to finish in
-about a quarter of an hour on 2 CPU cores; its numbers show the pipeline
-working, not the paper's quality (docs/RESULTS.md has the longer runs).
+the last checkpoint and re-evaluates. The `demo` preset of --train is sized to
+train in minutes on 2 CPU cores; its numbers show the pipeline working, not
+the model's quality (docs/RESULTS.md has the longer runs).
 """
 from __future__ import annotations
 
@@ -25,6 +28,8 @@ import sys
 import time
 
 from experiments import make_data, rollout, train
+from pcdiff_jax import shipped
+from pcdiff_jax.config import get_config
 
 METHODS = ("pcdiff", "simpl-ar", "idm", "cv")
 LABELS = {"pcdiff": "ours (prior, 5 DDIM steps)", "simpl-ar": "SIMPL-AR", "idm": "IDM",
@@ -35,7 +40,14 @@ def parse_args(argv=None) -> argparse.Namespace:
   p = argparse.ArgumentParser(prog="python -m experiments.demo", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
   p.add_argument("--out", default="runs/demo", help="output folder")
-  p.add_argument("--config", default="demo", help="config preset of both stages")
+  p.add_argument("--checkpoint", default=None,
+                 help="trained model folder (default: the shipped model, checkpoints/" + shipped.DEFAULT_NAME + ")")
+  p.add_argument("--train", action="store_true",
+                 help="train both stages from scratch with --config instead of loading a model")
+  p.add_argument("--config", default="demo", help="config preset of both stages (with --train)")
+  p.add_argument("--max-agents", type=int, default=None,
+                 help="reactive agents nearest the SDC (default: the model config's)")
+  p.add_argument("--warm-start", action="store_true", help="ours: warm-started (amortised) replanning")
   p.add_argument("--num-train", type=int, default=400, help="synthetic training scenes")
   p.add_argument("--num-val", type=int, default=24, help="synthetic val scenes (the closed-loop set)")
   p.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
@@ -46,6 +58,10 @@ def parse_args(argv=None) -> argparse.Namespace:
   args = p.parse_args(argv)
   if args.num_train < 8 or args.num_val < 1:
     p.error("--num-train must be >= 8 and --num-val >= 1")
+  if args.train and args.checkpoint:
+    p.error("--train and --checkpoint exclude each other")
+  if args.max_agents is not None and args.max_agents < 1:
+    p.error("--max-agents must be >= 1")
   return args
 
 
@@ -77,26 +93,37 @@ def table(out: str, methods) -> str:
 def main(argv=None) -> int:
   args = parse_args(argv)
   t0 = time.perf_counter()
-  data, model = os.path.join(args.out, "data"), os.path.join(args.out, "model")
+  data = os.path.join(args.out, "data")
+  model = os.path.join(args.out, "model") if args.train else (args.checkpoint or shipped.checkpoint_dir())
+  if not args.train and not os.path.isdir(model):
+    print(f"demo: no trained model at {model}; pass --checkpoint DIR or --train", file=sys.stderr)
+    return 2
   quiet = ["--no-progress"] if args.no_progress else []
-  _run("scenes", make_data.main, ["--out", data, "--num-train", str(args.num_train),
+  num_train = args.num_train if args.train else 0
+  _run("scenes", make_data.main, ["--out", data, "--num-train", str(num_train),
                                   "--num-val", str(args.num_val), "--seed", "0", "--shard-size", "100"])
-  _run("training", train.main, ["--stage", "all", "--config", args.config, "--workdir", model,
-                                "--data", os.path.join(data, "train-*")] + quiet)
-  from pcdiff_jax.config import get_config
-  max_agents = get_config(args.config).metrics.max_reactive_agents
+  if args.train:
+    _run("training", train.main, ["--stage", "all", "--config", args.config, "--workdir", model,
+                                  "--data", os.path.join(data, "train-*")] + quiet)
+    model_cfg = get_config(args.config)
+  else:
+    model_cfg = shipped.read_config(model)
+    print(f"\n== model: {model} (see its MODEL_CARD.md)", flush=True)
+  max_agents = args.max_agents or model_cfg.metrics.max_reactive_agents
   for method in args.methods:
     argv = ["--scenarios", os.path.join(data, "val-*"), "--method", method,
             "--out", os.path.join(args.out, "eval", method), "--batch-size", str(args.batch_size),
             "--max-agents", str(max_agents), "--gifs", "2"]
     if method in ("pcdiff", "simpl-ar"):
       argv += ["--checkpoint", model, "--ddim-steps", "5"]
+    if method == "pcdiff" and args.warm_start:
+      argv += ["--warm-start"]
     _run(f"closed loop: {method}", rollout.main, argv + quiet)
   if "pcdiff" in args.methods and os.path.exists(args.real):
     _run("closed loop on the real WOMD sample: pcdiff", rollout.main, [
         "--scenarios", args.real, "--method", "pcdiff", "--checkpoint", model,
         "--out", os.path.join(args.out, "eval", "real-pcdiff"), "--max-agents", str(max_agents),
-        "--gifs", "1"] + quiet)
+        "--gifs", "1"] + (["--warm-start"] if args.warm_start else []) + quiet)
   text = table(args.out, args.methods)
   minutes = (time.perf_counter() - t0) / 60
   header = (f"# Demo: {args.num_val} synthetic val scenes, 80 closed-loop steps at 10 Hz, up to "

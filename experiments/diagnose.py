@@ -129,7 +129,7 @@ def drift(args, models, cfg, batch, num) -> dict:
   del models
   ecfg = evaluation.EvalConfig(method=args.method, checkpoint=args.checkpoint, replan_every=args.replan_every,
                                ddim_steps=args.ddim_steps, consistent_noise=args.consistent_noise,
-                               execute=args.execute)
+                               execute=args.execute, warm_start=args.warm_start)
   actor, params = evaluation.make_actor(ecfg)
   rngs = jax.random.split(jax.random.PRNGKey(args.seed), num)
   final = jax.device_get(evaluation.make_rollout_fn(actor, ecfg)(batch, rngs, params))
@@ -203,6 +203,7 @@ def main(argv=None) -> None:
   d.add_argument("--ddim-steps", type=int, default=5)
   d.add_argument("--consistent-noise", action="store_true")
   d.add_argument("--execute", default="actions", choices=["actions", "track"])
+  d.add_argument("--warm-start", action="store_true", help="pcdiff: warm-started replanning")
   f = sub.add_parser("first-action", help="first planned action against the log's")
   f.add_argument("--ddim-steps", type=int, default=5)
   f.add_argument("--no-prior", dest="prior", action="store_false")

@@ -10,7 +10,7 @@ from experiments import demo
 
 def test_demo_pipeline_runs_end_to_end(tmp_path):
   out = str(tmp_path / "demo")
-  code = demo.main(["--out", out, "--config", "tiny", "--num-train", "8", "--num-val", "2",
+  code = demo.main(["--out", out, "--train", "--config", "tiny", "--num-train", "8", "--num-val", "2",
                     "--methods", "pcdiff", "cv", "--batch-size", "2", "--real", "/nonexistent",
                     "--no-progress"])
   assert code == 0

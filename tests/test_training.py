@@ -155,6 +155,21 @@ def test_train_cli_resume_guard_and_both_stages(tmp_path, womd_path, capsys):
     states = planner.decode_states(models.stats, cond, y0, cfg)
     assert states.shape == (1, cfg.features.max_agents, cfg.encoder.horizon, 4)
     assert np.all(np.isfinite(np.asarray(states)))
+  # Export as a shipped model: parameters only, loadable by the one-call loader.
+  from experiments import export
+  import pcdiff_jax
+  shipped = str(tmp_path / "shipped")
+  assert export.main(["--workdir", work, "--out", shipped]) == 0
+  assert export.main(["--workdir", work, "--out", shipped]) == 2          # never overwrites
+  assert "exists" in capsys.readouterr().err
+  loaded, loaded_cfg = pcdiff_jax.pretrained(path=shipped)
+  assert loaded_cfg == cfg
+  for a, b in zip(jax.tree_util.tree_leaves(loaded), jax.tree_util.tree_leaves(models)):
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+  enc, _ = pcdiff_jax.pretrained(path=shipped, stage="encoder")
+  assert jax.tree_util.tree_structure(enc) == jax.tree_util.tree_structure(models.encoder)
+  with pytest.raises(FileNotFoundError, match="no shipped model"):
+    pcdiff_jax.pretrained(path=str(tmp_path / "nothing"))
 
 
 def test_train_cli_rejects_bad_input(tmp_path, capsys):

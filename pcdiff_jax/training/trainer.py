@@ -141,6 +141,13 @@ class Checkpointer:
         state=ocp.args.StandardSave(state), config=ocp.args.JsonSave(config)))
     self.manager.wait_until_finished()
 
+  def save_raw(self, step: int, tree: Any, config: dict) -> None:
+    """Saves any pytree of arrays (e.g. a TrainState without its optimizer
+    state, `pretrained.export`) as step `step`; `restore_raw` reads it back."""
+    self.manager.save(step, args=ocp.args.Composite(
+        state=ocp.args.StandardSave(tree), config=ocp.args.JsonSave(config)))
+    self.manager.wait_until_finished()
+
   def read_config(self, step: Optional[int] = None) -> dict:
     step = self.latest_step() if step is None else step
     if step is None:

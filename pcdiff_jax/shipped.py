@@ -1,0 +1,85 @@
+"""The shipped model: one call to load it, one to export a training run like it.
+
+  models, cfg = pcdiff_jax.pretrained()   # both stages + latent statistics + config
+  encoder_params, cfg = pcdiff_jax.pretrained(stage="encoder")   # SIMPL-AR's encoder
+
+`checkpoints/<name>/` (committed, see its MODEL_CARD.md) has the layout of a
+training workdir (`encoder/checkpoints/<step>`, `diffusion/checkpoints/<step>`),
+so every `--checkpoint` option takes it as it is. `export` writes such a folder
+from a training workdir with the optimizer state left out (a third of the size).
+"""
+from __future__ import annotations
+
+import os
+import shutil
+from typing import Any, Optional
+
+DEFAULT_NAME = "pcdiff-cpu-v3"
+_STAGES = ("encoder", "diffusion")
+
+
+def checkpoint_dir(name: str = DEFAULT_NAME) -> str:
+  """The folder of a shipped model: `$PCDIFF_CHECKPOINTS/<name>` when that
+  variable is set, else `<repository>/checkpoints/<name>`."""
+  root = os.environ.get("PCDIFF_CHECKPOINTS")
+  if root is None:
+    root = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "checkpoints")
+  return os.path.join(root, name)
+
+
+def pretrained(name: str = DEFAULT_NAME, stage: str = "diffusion", path: Optional[str] = None):
+  """(models, cfg) of a shipped model (`planner.Models`, `config.Config`);
+  stage="encoder" returns (encoder parameters, cfg) instead. `path`: a folder
+  with the same layout (e.g. an exported or a training workdir)."""
+  from pcdiff_jax.training import diffusion_stage, encoder_stage
+  folder = path or checkpoint_dir(name)
+  if not os.path.isdir(folder):
+    raise FileNotFoundError(f"no shipped model at {folder} (set PCDIFF_CHECKPOINTS or pass path=)")
+  if stage == "encoder":
+    return encoder_stage.load(folder)
+  if stage != "diffusion":
+    raise ValueError(f"stage must be 'encoder' or 'diffusion', got {stage!r}")
+  return diffusion_stage.load(folder)
+
+
+def read_config(path: str, stage: str = "diffusion"):
+  """The Config a model folder was trained with (no parameters loaded)."""
+  from pcdiff_jax import config as config_lib
+  from pcdiff_jax.training import trainer
+  ckpt = trainer.Checkpointer(os.path.join(path, stage), read_only=True)
+  try:
+    return config_lib.from_dict(ckpt.read_config())
+  finally:
+    ckpt.close()
+
+
+def export(workdir: str, out: str) -> dict[str, int]:
+  """Copies the latest checkpoint of each stage of a training WORKDIR into OUT
+  (same layout) with parameters, frozen extras and config only. Returns the
+  step of each stage. Refuses to overwrite an existing OUT."""
+  from pcdiff_jax.training import trainer
+  if os.path.exists(out):
+    raise FileExistsError(f"{out} exists; remove it or choose another --out")
+  steps = {}
+  tmp = out.rstrip("/") + ".tmp"
+  shutil.rmtree(tmp, ignore_errors=True)
+  try:
+    for stage in _STAGES:
+      src = trainer.Checkpointer(os.path.join(workdir, stage), read_only=True)
+      try:
+        step, config, raw = src.latest_step(), src.read_config(), src.restore_raw()
+      finally:
+        src.close()
+      slim = {"step": raw["step"], "params": raw["params"], "rng": raw["rng"]}
+      if raw.get("extra"):
+        slim["extra"] = raw["extra"]
+      dst = trainer.Checkpointer(os.path.join(tmp, stage), keep=1)
+      try:
+        dst.save_raw(step, slim, config)
+      finally:
+        dst.close()
+      steps[stage] = int(step)
+    os.replace(tmp, out)
+  finally:
+    shutil.rmtree(tmp, ignore_errors=True)
+  return steps
