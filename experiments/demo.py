@@ -32,7 +32,7 @@ from pcdiff_jax import shipped
 from pcdiff_jax.config import get_config
 
 METHODS = ("pcdiff", "simpl-ar", "idm", "cv")
-LABELS = {"pcdiff": "ours (prior, 5 DDIM steps)", "simpl-ar": "SIMPL-AR", "idm": "IDM",
+LABELS = {"pcdiff": "ours (prior, 5 DDIM steps, then warm-started)", "simpl-ar": "SIMPL-AR", "idm": "IDM",
           "cv": "constant velocity"}
 
 
@@ -47,7 +47,8 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--config", default="demo", help="config preset of both stages (with --train)")
   p.add_argument("--max-agents", type=int, default=None,
                  help="reactive agents nearest the SDC (default: the model config's)")
-  p.add_argument("--warm-start", action="store_true", help="ours: warm-started (amortised) replanning")
+  p.add_argument("--warm-start", action=argparse.BooleanOptionalAction, default=True,
+                 help="ours: warm-started (amortised) replanning (default) or cold plans (--no-warm-start)")
   p.add_argument("--num-train", type=int, default=400, help="synthetic training scenes")
   p.add_argument("--num-val", type=int, default=24, help="synthetic val scenes (the closed-loop set)")
   p.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
@@ -116,14 +117,14 @@ def main(argv=None) -> int:
             "--max-agents", str(max_agents), "--gifs", "2"]
     if method in ("pcdiff", "simpl-ar"):
       argv += ["--checkpoint", model, "--ddim-steps", "5"]
-    if method == "pcdiff" and args.warm_start:
-      argv += ["--warm-start"]
+    if method == "pcdiff" and not args.warm_start:
+      argv += ["--no-warm-start"]
     _run(f"closed loop: {method}", rollout.main, argv + quiet)
   if "pcdiff" in args.methods and os.path.exists(args.real):
     _run("closed loop on the real WOMD sample: pcdiff", rollout.main, [
         "--scenarios", args.real, "--method", "pcdiff", "--checkpoint", model,
         "--out", os.path.join(args.out, "eval", "real-pcdiff"), "--max-agents", str(max_agents),
-        "--gifs", "1"] + (["--warm-start"] if args.warm_start else []) + quiet)
+        "--gifs", "1"] + ([] if args.warm_start else ["--no-warm-start"]) + quiet)
   text = table(args.out, args.methods)
   minutes = (time.perf_counter() - t0) / 60
   header = (f"# Demo: {args.num_val} synthetic val scenes, 80 closed-loop steps at 10 Hz, up to "

@@ -203,7 +203,8 @@ def main(argv=None) -> None:
   d.add_argument("--ddim-steps", type=int, default=5)
   d.add_argument("--consistent-noise", action="store_true")
   d.add_argument("--execute", default="actions", choices=["actions", "track"])
-  d.add_argument("--warm-start", action="store_true", help="pcdiff: warm-started replanning")
+  d.add_argument("--warm-start", action=argparse.BooleanOptionalAction, default=True,
+                 help="pcdiff: warm-started replanning (default) or cold plans")
   f = sub.add_parser("first-action", help="first planned action against the log's")
   f.add_argument("--ddim-steps", type=int, default=5)
   f.add_argument("--no-prior", dest="prior", action="store_false")

@@ -37,9 +37,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="pcdiff: run the plan's actions (paper) or track its path 0.5 s ahead (pure pursuit)")
   p.add_argument("--prior-centre", default="mean", choices=["mean", "top1"],
                  help="pcdiff: start DDIM around the mean of the K proposals (paper) or the most likely one")
-  p.add_argument("--warm-start", action="store_true",
+  p.add_argument("--warm-start", action=argparse.BooleanOptionalAction, default=True,
                  help="pcdiff: start each replan from the previous plan, advanced by the executed steps "
-                      "(amortised replanning), instead of the proposal prior")
+                      "(amortised replanning; the default), or from the proposal prior (--no-warm-start)")
   p.add_argument("--warm-step", type=int, default=evaluation.EvalConfig.warm_step,
                  help="pcdiff --warm-start: the diffusion step the previous plan is noised to (of 100)")
   p.add_argument("--warm-ddim-steps", type=int, default=evaluation.EvalConfig.warm_ddim_steps,

@@ -80,7 +80,7 @@ class EvalConfig:
   guidance: GuidanceConfig = GuidanceConfig()
   score_adversary: bool = False
   max_scenarios: Optional[int] = None
-  warm_start: bool = False
+  warm_start: bool = True
   warm_step: int = 30
   warm_ddim_steps: int = 2
   simpl_ar_sample: bool = False

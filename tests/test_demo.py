@@ -21,7 +21,7 @@ def test_demo_pipeline_runs_end_to_end(tmp_path):
     assert os.listdir(os.path.join(out, "eval", method, "gifs"))
   with open(os.path.join(out, "table.md")) as f:
     text = f.read()
-  assert "ours (prior, 5 DDIM steps)" in text and "constant velocity" in text
+  assert "ours (prior, 5 DDIM steps" in text and "constant velocity" in text
   # The closed-loop diagnostics run on the same model.
   from experiments import diagnose
   val = os.path.join(out, "data", "val-00000-of-00001.tfrecord")
