@@ -189,7 +189,7 @@ def bench_fused_vs_loop(state, cfg, num_steps: int, repeats: int) -> dict:
   from pcdiff_jax import policy
   from pcdiff_jax.sim import env
   models = _policy_models(state, cfg)
-  actor = policy.actor(cfg, policy.PolicyConfig(ddim_steps=cfg.diffusion.ddim_steps))
+  actor = policy.actor(cfg, policy.PolicyConfig(ddim_steps=cfg.diffusion.ddim_steps, warm_start=False))
   rng = jax.random.PRNGKey(0)
   start = env.reset(state)
   fused = lambda s, r, m: env.rollout(s, actor, num_steps, r, params=m).final_state
@@ -208,7 +208,7 @@ def bench_fused_vs_loop(state, cfg, num_steps: int, repeats: int) -> dict:
 
   jax.block_until_ready(python_loop(start, rng, models))          # compile
   loop_times = _time(lambda: python_loop(start, rng, models), repeats)
-  # Warm-started replanning (PolicyConfig defaults: 2 DDIM steps from step 30 after the first plan).
+  # Warm-started replanning (the default: 2 DDIM steps from step 30 after the first plan).
   warm = policy.actor(cfg, policy.PolicyConfig(ddim_steps=cfg.diffusion.ddim_steps, warm_start=True))
   warm_t = _compiled_ms(lambda s, r, m: env.rollout(s, warm, num_steps, r, params=m).final_state,
                         (start, rng, models), repeats)
