@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import os
 import shutil
-from typing import Any, Optional
+from typing import Optional
 
 DEFAULT_NAME = "pcdiff-cpu-v3"
 _STAGES = ("encoder", "diffusion")
