@@ -75,8 +75,8 @@ class PolicyConfig:
   noise level; the first plan of a rollout is the cold `ddim_steps` sampler.
   The default since models v3 (docs/RESULTS.md: on 50 val scenes at 10 Hz,
   fewer collisions, 3x better realism, 0.6 m better minADE than cold plans).
-  Under vmap both branches of its `lax.cond` (first plan or not) run, so a
-  batched rollout pays the cold and the warm sampler at every replan.
+  Cold and warm chains are one while loop (`diffusion.ddim_sample_either`),
+  so a vmapped batch pays the cold sampler only at its first replan.
   """
   ddim_steps: int = 5
   eta: float = 0.0
@@ -155,7 +155,8 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
   (O, d): per-object initial noise, default drawn from rng; road: the scene's
   road field, default built here, which costs a field per call; controlled
   (O,): objects modelled first after the SDC, whatever their distance; warm:
-  a previous plan to start from (`PolicyConfig.warm_start`), else the prior).
+  a previous plan to start from (`PolicyConfig.warm_start`), else the prior;
+  with `warm`, the plan is cold when no modelled agent has a previous plan).
 
   Returns actions (O, T, 2) per object (zeros where not planned), which
   objects got a plan (O,), and the planned positions (O, T, 2) in the world frame
@@ -175,13 +176,17 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
     y0 = planner.sample(models.denoiser, cond, cfg, rng, policy.ddim_steps, policy.eta,
                         prior_init=policy.prior_init, guide=guide, guide_steps=steps,
                         init_noise=init_noise)
-  else:
+  else:   # the first plan of a rollout (no agent has a previous one) is cold
     previous = latent.encode(warm.actions[feats.agent_index], models.stats)[None]   # (1, A, d)
-    centre = jnp.where(warm.has[feats.agent_index][None, :, None], previous, cond.mu)
-    steps = policy.guidance.guide_steps(policy.warm_ddim_steps) if guide is not None else None
-    y0 = planner.sample(models.denoiser, cond, cfg, rng, policy.warm_ddim_steps, policy.eta,
-                        prior_init=policy.prior_init, guide=guide, guide_steps=steps,
-                        init_noise=init_noise, centre=centre, start_step=policy.warm_step)
+    has = warm.has[feats.agent_index] & feats.agent_valid
+    centre = jnp.where(has[None, :, None], previous, cond.mu)
+    g = policy.guidance
+    y0 = planner.sample_cold_or_warm(
+        models.denoiser, cond, cfg, rng, ~jnp.any(has), centre, policy.ddim_steps,
+        policy.warm_ddim_steps, policy.warm_step, policy.eta, prior_init=policy.prior_init,
+        guide=guide, cold_guide_steps=g.guide_steps(policy.ddim_steps) if guide is not None else None,
+        warm_guide_steps=g.guide_steps(policy.warm_ddim_steps) if guide is not None else None,
+        init_noise=init_noise)
   actions = dynamics.clip_action(latent.decode(y0[0], models.stats), cfg.kinematics)  # (A, T, 2)
   if policy.execute == "track":   # the world-frame path is only needed to track it
     states = dynamics.rollout(latent.initial_states(cond.speed[0]), actions, cfg.kinematics.dt)
@@ -251,12 +256,9 @@ def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
                                 controlled=ps.controlled)
     if not policy.warm_start:
       return cold()
-    warm = WarmStart(actions=advance_plan(ps.plan, ps.age), has=ps.plan_valid)
-    return jax.lax.cond(
-        jnp.any(ps.plan_valid & ps.controlled),
-        lambda: plan_actions(models, state, cfg, policy, rng, ps.adversary, noise, ps.road,
-                             controlled=ps.controlled, warm=warm),
-        cold)
+    warm = WarmStart(actions=advance_plan(ps.plan, ps.age), has=ps.plan_valid & ps.controlled)
+    return plan_actions(models, state, cfg, policy, rng, ps.adversary, noise, ps.road,
+                        controlled=ps.controlled, warm=warm)
 
   def select_action(models, state, ps: PlanState, rng):
     due = ps.age >= policy.replan_every

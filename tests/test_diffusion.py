@@ -120,3 +120,22 @@ def test_warm_start_keeps_a_consistent_plan_and_starts_where_asked():
     D.ddim_timesteps(100, 2, start_step=100)
   with pytest.raises(ValueError, match="DDIM steps"):
     D.ddim_timesteps(100, 5, start_step=3)
+
+
+@pytest.mark.parametrize("eta", [0.0, 1.0])
+def test_either_chain_matches_the_chosen_sampler_under_vmap(eta):
+  """`ddim_sample_either` is the cold sampler where asked and the warm one
+  elsewhere, scene by scene in one vmapped call, noise included."""
+  m, c = jnp.array([1.0, -2.0]), jnp.array([0.5, 0.4])
+  sigma = jnp.array([0.8, 1.0])
+  den = _gaussian_denoiser(m, c, sigma)
+  mu = jnp.stack([jnp.broadcast_to(m, (3, 2)), jnp.broadcast_to(m + 0.3, (3, 2))])     # (2, 3, 2)
+  sig = jnp.broadcast_to(sigma, mu.shape)
+  keys = jax.random.split(jax.random.key(3), 2)
+  cold = jnp.array([True, False])
+  either = jax.vmap(lambda mu, sig, k, c: D.ddim_sample_either(den, mu, sig, SCHED, k, c, 5, 2, 30, eta))
+  out = np.asarray(either(mu, sig, keys, cold))
+  expect_cold = D.ddim_sample(den, mu[0], sig[0], SCHED, keys[0], 5, eta)
+  expect_warm = D.ddim_sample(den, mu[1], sig[1], SCHED, keys[1], 2, eta, start_step=30)
+  np.testing.assert_allclose(out[0], np.asarray(expect_cold), rtol=1e-5, atol=1e-5)
+  np.testing.assert_allclose(out[1], np.asarray(expect_warm), rtol=1e-5, atol=1e-5)

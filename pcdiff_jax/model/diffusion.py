@@ -128,18 +128,38 @@ def ddim_sample(denoise: DenoiseFn, mu: Array, sigma: Array, schedule: Schedule,
       intermediate step and denoises from there (SceneDiffuser's amortised
       rollout, done in the latent): mu stays where the data agrees with it.
   """
+  steps, prev, use_guide = _chain(schedule, num_sample_steps, start_step, guide_steps)
+  rng_init, rng_steps = jax.random.split(rng)
+  if init_noise is None:
+    init_noise = jax.random.normal(rng_init, mu.shape, mu.dtype)
+  y = initial_sample(mu, sigma, init_noise, schedule, int(steps[0]))
+  update = _ddim_update(denoise, sigma, schedule, eta, guide)
+
+  def body(y, inputs):
+    return update(y, *inputs), None
+
+  n = len(steps)
+  keys = jax.random.split(rng_steps, n)
+  y, _ = jax.lax.scan(body, y, (jnp.asarray(steps), jnp.asarray(prev), jnp.asarray(use_guide),
+                                jnp.arange(n), keys))
+  return y
+
+
+def _chain(schedule: Schedule, num_sample_steps: int, start_step: Optional[int],
+           guide_steps: Optional[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+  """Static (n,) steps, the step each goes to, and which steps call the guide."""
   steps = ddim_timesteps(schedule.num_steps, num_sample_steps, start_step)
   prev = np.concatenate([steps[1:], [-1]]).astype(np.int32)
   use_guide = np.zeros(len(steps), bool) if guide_steps is None else np.asarray(guide_steps, bool)
   if use_guide.shape != steps.shape:
     raise ValueError(f"guide_steps must have shape {steps.shape}, got {use_guide.shape}")
-  rng_init, rng_steps = jax.random.split(rng)
-  if init_noise is None:
-    init_noise = jax.random.normal(rng_init, mu.shape, mu.dtype)
-  y = initial_sample(mu, sigma, init_noise, schedule, int(steps[0]))
+  return steps, prev, use_guide
 
-  def body(y, inputs):
-    s, p, g, i, key = inputs
+
+def _ddim_update(denoise: DenoiseFn, sigma: Array, schedule: Schedule, eta: float,
+                 guide: Optional[GuideFn]):
+  """One DDIM step y_s -> y_p: (y, s, p, use_guide, step_index, key) -> y."""
+  def update(y, s, p, g, i, key):
     scaled = denoise(y, s)
     y0 = predict_y0(y, s, scaled, schedule)
     if guide is not None:
@@ -148,13 +168,47 @@ def ddim_sample(denoise: DenoiseFn, mu: Array, sigma: Array, schedule: Schedule,
     n_hat = (y - jnp.sqrt(a_s) * y0) / jnp.sqrt(1.0 - a_s)
     c = eta * jnp.sqrt((1.0 - a_p) / (1.0 - a_s)) * jnp.sqrt(jnp.maximum(1.0 - a_s / a_p, 0.0))
     z = jax.random.normal(key, y.shape, y.dtype)
-    y = jnp.sqrt(a_p) * y0 + jnp.sqrt(jnp.maximum(1.0 - a_p - c ** 2, 0.0)) * n_hat + c * sigma * z
-    return y, None
+    return jnp.sqrt(a_p) * y0 + jnp.sqrt(jnp.maximum(1.0 - a_p - c ** 2, 0.0)) * n_hat + c * sigma * z
+  return update
 
-  n = len(steps)
-  keys = jax.random.split(rng_steps, n)
-  y, _ = jax.lax.scan(body, y, (jnp.asarray(steps), jnp.asarray(prev), jnp.asarray(use_guide),
-                                jnp.arange(n), keys))
+
+def ddim_sample_either(denoise: DenoiseFn, mu: Array, sigma: Array, schedule: Schedule, rng: Array,
+                       use_first: Array, first_steps: int, then_steps: int, then_start: int,
+                       eta: float = 0.0, guide: Optional[GuideFn] = None,
+                       first_guide_steps: Optional[np.ndarray] = None,
+                       then_guide_steps: Optional[np.ndarray] = None,
+                       init_noise: Optional[Array] = None) -> Array:
+  """`ddim_sample` with `first_steps` from S - 1 where `use_first` (a traced
+  bool), else with `then_steps` from `then_start` (a warm start), as one
+  `lax.while_loop` over the chosen chain. Same result as the matching
+  `ddim_sample` call. Why not `lax.cond` between two samplers: under vmap a
+  cond runs both branches; a while loop runs until the longest chain of the
+  batch is done, so a batch whose scenes all warm-start pays only the short
+  chain (the first replan of a rollout is the only cold one)."""
+  first = _chain(schedule, first_steps, None, first_guide_steps)
+  then = _chain(schedule, then_steps, then_start, then_guide_steps)
+  n = max(len(first[0]), len(then[0]))
+  pad = lambda a: np.concatenate([a, np.repeat(a[-1:], n - len(a))])
+  pick = lambda a, b: jnp.where(use_first, jnp.asarray(pad(a)), jnp.asarray(pad(b)))
+  steps, prev, use_guide = (pick(a, b) for a, b in zip(first, then))
+  count = jnp.where(use_first, len(first[0]), len(then[0]))
+  rng_init, rng_steps = jax.random.split(rng)
+  keys_first = jax.random.split(rng_steps, len(first[0]))
+  keys_then = jax.random.split(rng_steps, len(then[0]))
+  typed = jnp.issubdtype(keys_first.dtype, jax.dtypes.prng_key)
+  raw = lambda k: jax.random.key_data(k) if typed else k
+  pad_keys = lambda k: jnp.concatenate([raw(k), jnp.repeat(raw(k)[-1:], n - k.shape[0], 0)], 0)
+  keys = jnp.where(use_first, pad_keys(keys_first), pad_keys(keys_then))
+  if init_noise is None:
+    init_noise = jax.random.normal(rng_init, mu.shape, mu.dtype)
+  y = q_sample(mu, steps[0], init_noise, sigma, schedule)
+  update = _ddim_update(denoise, sigma, schedule, eta, guide)
+
+  def body(carry):
+    i, y = carry
+    key = jax.random.wrap_key_data(keys[i]) if typed else keys[i]
+    return i + 1, update(y, steps[i], prev[i], use_guide[i], i, key)
+  _, y = jax.lax.while_loop(lambda c: c[0] < count, body, (jnp.int32(0), y))
   return y
 
 

@@ -129,6 +129,28 @@ def sample(denoiser_params: Any, cond: Conditioning, cfg: Config, rng: Array,
                                start_step=start_step)
 
 
+def sample_cold_or_warm(denoiser_params: Any, cond: Conditioning, cfg: Config, rng: Array,
+                        cold: Array, centre: Array, num_steps: int, warm_steps: int, warm_start: int,
+                        eta: Optional[float] = None, prior_init: bool = True, guide=None,
+                        cold_guide_steps=None, warm_guide_steps=None,
+                        init_noise: Optional[Array] = None) -> Array:
+  """Joint plans (B, A, d): the cold `num_steps` sampler from the prior where
+  `cold` (a traced bool), else the warm one from `centre` noised to
+  `warm_start` (`diffusion.ddim_sample_either`: one while loop, so a vmapped
+  batch does not pay both chains)."""
+  d = cfg.diffusion
+  eta = d.eta if eta is None else eta
+  mu, sigma = (cond.mu, cond.sigma) if prior_init else diffusion.standard_prior(cond.mu.shape)
+  mu = jnp.where(cold, mu, centre)
+
+  def denoise(y, s):
+    return denoiser_lib.apply(denoiser_params, y, s, cond.inputs, d.denoiser)
+  return diffusion.ddim_sample_either(denoise, mu, sigma, schedule_of(cfg), rng, cold, num_steps,
+                                      warm_steps, warm_start, eta, guide=guide,
+                                      first_guide_steps=cold_guide_steps,
+                                      then_guide_steps=warm_guide_steps, init_noise=init_noise)
+
+
 def decode_states(stats: LatentStats, cond: Conditioning, y0: Array, cfg: Config) -> Array:
   """(..., A, d) latents -> (..., A, T, 4) agent-frame states [x, y, psi, v]."""
   return latent.rollout(y0, cond.speed, stats, cfg.kinematics)
