@@ -6,7 +6,7 @@ WOMD ?= ../shared/data/womd/motion_data_one_example.tfrecord
 DEMO_OUT ?= runs/demo
 PYTEST_WORKERS ?= 2
 
-.PHONY: install demo test bench data clean
+.PHONY: install demo test bench data train clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -24,6 +24,18 @@ test: install
 
 data: install   # the built-in dataset (docs/DATA.md): 2000 train + 200 val scenes in data/synth
 	$(PY) -m experiments.make_data --out data/synth --num-train 2000 --num-val 200 --seed 0
+
+TRAIN_DIR ?= runs/train
+FINETUNE_ARGS ?= --rounds 2 --scenes 300 --steps 600
+# The shipped model's recipe from scratch (checkpoints/*/MODEL_CARD.md): 10k scenes, both stages,
+# on-policy fine-tuning rounds, export. Each command resumes where it stopped when re-run.
+train: install
+	$(PY) -m experiments.make_data --out data/synth10k --num-train 10000 --num-val 200 --seed 0 --shard-size 500
+	$(PY) -m experiments.train --stage encoder --config cpu --data 'data/synth10k/train-*' --workdir $(TRAIN_DIR) --steps 1800
+	$(PY) -m experiments.train --stage diffusion --config cpu --data 'data/synth10k/train-*' --workdir $(TRAIN_DIR)
+	$(PY) -m experiments.finetune --from $(TRAIN_DIR) --data 'data/synth10k/train-*' --workdir $(TRAIN_DIR)-onpolicy \
+	  --cache-dir $(TRAIN_DIR)/cache $(FINETUNE_ARGS)
+	$(PY) -m experiments.export --workdir $(TRAIN_DIR)-onpolicy --out $(TRAIN_DIR)-model
 
 bench: install
 	$(PY) -m experiments.bench --scenarios $(WOMD)

@@ -170,6 +170,29 @@ def test_train_cli_resume_guard_and_both_stages(tmp_path, womd_path, capsys):
   assert jax.tree_util.tree_structure(enc) == jax.tree_util.tree_structure(models.encoder)
   with pytest.raises(FileNotFoundError, match="no shipped model"):
     pcdiff_jax.pretrained(path=str(tmp_path / "nothing"))
+  # On-policy fine-tuning (CAT-K-style round) from the shipped folder: the
+  # encoder and the denoiser move, the latent stays, and the result loads as a
+  # model (both stages, so SIMPL-AR takes it too).
+  from experiments import finetune
+  ft = str(tmp_path / "ft")
+  argv = ["--from", shipped, "--data", womd_path, "--workdir", ft, "--cache-dir", os.path.join(work, "cache"),
+          "--scenes", "1", "--steps", "2", "--encoder-steps", "1", "--times", "12", "13", "--max-agents", "8",
+          "--batch-size", "2", "--no-progress"]
+  assert finetune.main(argv) == 0
+  tuned, tuned_cfg = diffusion_stage.load(ft)
+  assert tuned_cfg.diffusion == cfg.diffusion and tuned_cfg.encoder == cfg.encoder
+  for a, b in zip(jax.tree_util.tree_leaves(tuned.stats), jax.tree_util.tree_leaves(models.stats)):
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+  changed = lambda x, y: any(not np.array_equal(np.asarray(a), np.asarray(b)) for a, b in
+                             zip(jax.tree_util.tree_leaves(x), jax.tree_util.tree_leaves(y)))
+  assert changed(tuned.denoiser, models.denoiser) and changed(tuned.encoder, models.encoder)
+  enc_ft, _ = pcdiff_jax.pretrained(path=ft, stage="encoder")
+  assert not changed(enc_ft, tuned.encoder)
+  summary = json.load(open(os.path.join(ft, "finetune_summary.json")))
+  assert summary["rounds"][0]["collect"]["examples"] == 2 and summary["rounds"][0]["step"] == 2
+  assert finetune.main(argv) == 0                                         # finished rounds are kept
+  assert finetune.main(argv[:1] + [str(tmp_path / "nothing")] + argv[2:]) == 2
+  assert "no diffusion/" in capsys.readouterr().err
 
 
 def test_train_cli_rejects_bad_input(tmp_path, capsys):

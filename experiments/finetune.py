@@ -1,0 +1,157 @@
+"""On-policy recovery fine-tuning of a trained diffusion policy (CAT-K-style rounds).
+
+  python -m experiments.finetune --from checkpoints/pcdiff-cpu-v3 \\
+      --data 'data/synth10k/train-*' --workdir runs/v4 --rounds 2 --scenes 400 --steps 600
+
+Each round rolls the current policy out in closed loop (10 Hz, warm-started,
+SDC on its log, as `experiments.rollout` evaluates it) on --scenes training
+scenes not used by an earlier round, cuts examples at the visited steps, and
+fine-tunes the denoiser for --steps on batches that mix them with the logged
+examples (`pcdiff_jax.training.closed_loop`). Round r keeps its examples in
+WORKDIR/round-r/on_policy.npz and its model in WORKDIR/round-r; the last
+round's model is WORKDIR itself (WORKDIR/diffusion, WORKDIR/encoder), so
+`--checkpoint WORKDIR` and `experiments.export` take it. Run the same command
+again after an interruption: finished rounds are kept, the current one resumes.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import os
+import shutil
+import sys
+import time
+
+from pcdiff_jax.data import womd
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+  p = argparse.ArgumentParser(prog="python -m experiments.finetune", description=__doc__,
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+  p.add_argument("--from", dest="source", required=True,
+                 help="the model to start from: a training workdir or a shipped model folder")
+  p.add_argument("--data", required=True, nargs="+", help="training TFRecord file(s) or glob(s)")
+  p.add_argument("--workdir", required=True)
+  p.add_argument("--cache-dir", default=None, help="logged-example cache (default WORKDIR/cache)")
+  p.add_argument("--rounds", type=int, default=1)
+  p.add_argument("--scenes", type=int, default=400, help="training scenes rolled out per round")
+  p.add_argument("--steps", type=int, default=600, help="optimizer steps per round")
+  p.add_argument("--learning-rate", type=float, default=2e-4)
+  p.add_argument("--encoder-steps", type=int, default=0,
+                 help="also fine-tune the encoder (proposals, SIMPL-AR) for this many steps per round, "
+                      "before the denoiser")
+  p.add_argument("--encoder-learning-rate", type=float, default=5e-4)
+  p.add_argument("--batch-size", type=int, default=None, help="default: the model's stage-2 batch size")
+  p.add_argument("--mix", type=float, default=0.5, help="fraction of each batch from on-policy examples")
+  p.add_argument("--times", type=int, nargs="+", default=[20, 30, 40, 50],
+                 help="visited steps cut into examples (the rollout starts at 10)")
+  p.add_argument("--max-offset", type=float, default=8.0, help="m; farther agents are not trained on")
+  p.add_argument("--rollout-batch", type=int, default=4, help="scenes per jitted rollout call")
+  p.add_argument("--max-agents", type=int, default=64, help="reactive agents the policy controls")
+  p.add_argument("--seed", type=int, default=0)
+  p.add_argument("--no-progress", action="store_true")
+  args = p.parse_args(argv)
+  for name in ("rounds", "scenes", "steps", "rollout_batch", "max_agents"):
+    if getattr(args, name) < 1:
+      p.error(f"--{name.replace('_', '-')} must be >= 1")
+  if args.batch_size is not None and args.batch_size < 2:
+    p.error("--batch-size must be >= 2")
+  if not 0.0 < args.mix < 1.0:
+    p.error("--mix must be in (0, 1)")
+  if args.learning_rate <= 0 or args.encoder_learning_rate <= 0:
+    p.error("learning rates must be > 0")
+  if args.encoder_steps < 0:
+    p.error("--encoder-steps must be >= 0")
+  return args
+
+
+def _publish(round_dir: str, source: str, workdir: str) -> None:
+  """WORKDIR/diffusion := the round's model; WORKDIR/encoder := the round's
+  fine-tuned encoder, else the source's."""
+  encoder = os.path.join(round_dir, "encoder")
+  for stage, src in (("diffusion", os.path.join(round_dir, "diffusion")),
+                     ("encoder", encoder if os.path.isdir(encoder) else os.path.join(source, "encoder"))):
+    dst = os.path.join(workdir, stage)
+    if os.path.isdir(src) and os.path.abspath(src) != os.path.abspath(dst):
+      tmp = dst + ".tmp"
+      shutil.rmtree(tmp, ignore_errors=True)
+      shutil.copytree(src, tmp)
+      shutil.rmtree(dst, ignore_errors=True)
+      os.replace(tmp, dst)
+
+
+def main(argv=None) -> int:
+  args = parse_args(argv)
+  logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+  for noisy in ("absl", "orbax", "jax._src.xla_bridge"):
+    logging.getLogger(noisy).setLevel(logging.WARNING)
+  from pcdiff_jax import evaluation, policy
+  from pcdiff_jax.training import closed_loop, diffusion_stage, encoder_stage, trainer
+  from pcdiff_jax.training import data as data_lib
+  try:
+    files = womd.expand_paths(args.data)
+    if not os.path.isdir(os.path.join(args.source, "diffusion")):
+      raise FileNotFoundError(f"--from {args.source}: no diffusion/ model folder there")
+    models, model_cfg = diffusion_stage.load(args.source)
+    metrics_cfg = dataclasses.replace(model_cfg.metrics, max_reactive_agents=args.max_agents)
+    run_cfg = evaluation.with_agent_cap(model_cfg, metrics_cfg)
+    ocfg = closed_loop.OnPolicyConfig(times=tuple(args.times), max_offset=args.max_offset, mix=args.mix)
+    tc = model_cfg.diffusion_train
+    tc = dataclasses.replace(tc, total_steps=args.steps, learning_rate=args.learning_rate,
+                             warmup_steps=min(50, args.steps // 10), eval_every=args.steps,
+                             checkpoint_every=min(100, args.steps), seed=args.seed,
+                             batch_size=args.batch_size or tc.batch_size)
+    cache = args.cache_dir or os.path.join(args.workdir, "cache")
+    spec = encoder_stage.cache_spec(model_cfg)
+    logged, _ = data_lib.load_or_build(files, spec, cache, "train", progress=not args.no_progress)
+    os.makedirs(args.workdir, exist_ok=True)
+    source = args.source
+    history = []
+    for r in range(args.rounds):
+      round_dir = os.path.join(args.workdir, f"round-{r}")
+      os.makedirs(round_dir, exist_ok=True)
+      path = os.path.join(round_dir, "on_policy.npz")
+      t0 = time.time()
+      if os.path.exists(path):
+        on_policy, info = closed_loop.load_examples(path)
+      else:
+        on_policy, info = closed_loop.collect(
+            models, run_cfg, policy.PolicyConfig(), files, ocfg, first=r * args.scenes,
+            count=args.scenes, batch_size=args.rollout_batch, seed=args.seed + r,
+            progress=not args.no_progress)
+        info["minutes"] = (time.time() - t0) / 60
+        closed_loop.save_examples(path, on_policy, info)
+      print(f"round {r}: {json.dumps(info)}")
+      t1 = time.time()
+      if args.encoder_steps:
+        etc = dataclasses.replace(model_cfg.encoder_train, total_steps=args.encoder_steps,
+                                  learning_rate=args.encoder_learning_rate,
+                                  warmup_steps=min(50, args.encoder_steps // 10),
+                                  eval_every=args.encoder_steps, checkpoint_every=min(100, args.encoder_steps),
+                                  seed=args.seed, batch_size=args.batch_size or model_cfg.encoder_train.batch_size)
+        enc_state, _ = closed_loop.finetune_encoder(models.encoder, model_cfg, logged, on_policy, round_dir,
+                                                    etc, ocfg, progress=not args.no_progress)
+        models = models.replace(encoder=enc_state.params)
+      state, _ = closed_loop.finetune(models, model_cfg, logged, on_policy, round_dir, tc, ocfg,
+                                      progress=not args.no_progress)
+      models, _ = diffusion_stage.load(round_dir)
+      history.append({"round": r, "collect": info, "finetune_minutes": (time.time() - t1) / 60,
+                      "step": int(state.step)})
+      _publish(round_dir, source, args.workdir)
+      source = args.workdir
+    out = {"from": args.source, "rounds": history, "args": vars(args)}
+    with open(os.path.join(args.workdir, "finetune_summary.json"), "w") as f:
+      json.dump(out, f, indent=2)
+    print(json.dumps(out, indent=2))
+  except (FileNotFoundError, ValueError, trainer.CheckpointMismatch) as err:
+    print(f"error: {err}", file=sys.stderr)
+    return 2
+  except KeyboardInterrupt:
+    return 130
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())

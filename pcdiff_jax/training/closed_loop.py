@@ -1,0 +1,308 @@
+"""On-policy recovery fine-tuning (CAT-K's idea, ../shared/REFERENCES.md, in our diffusion policy).
+
+A policy trained on logged states meets its own states in closed loop: small
+errors put agents beside their lane, and a model that never saw such a state
+does not bring them back (covariate shift). CAT-K fine-tunes on the states
+its own closed-loop rollouts visit, with the logged future as the target.
+Our fused, jitted closed loop makes the rollouts cheap, so a round is:
+
+1. `collect`: roll the current policy out (`evaluation.make_rollout_fn`, the
+   SDC on its log, every other agent planned at 10 Hz) on training scenes and
+   cut examples at the visited steps `times`: the scene features read the
+   simulated history (the policy's own), and each agent's target
+   (`on_policy_targets`) starts at its simulated pose and speed and re-joins
+   its logged future;
+2. `finetune_encoder` (optional): train the encoder's proposals on the same
+   mixed batches, so the proposal prior and SIMPL-AR also learn to bring a
+   drifted agent back;
+3. `finetune`: train the denoiser (encoder and latent frozen) on batches that
+   mix those on-policy examples with the logged ones (with the random
+   recovery perturbations of `training.perturb`).
+
+Rounds repeat it with the fine-tuned policy (DAgger).
+
+The re-joining target, in the world frame, for the log state x(t + k dt):
+
+  o(tau) = d0 h00(tau) + R dv h10(tau),   tau = k dt / R
+  p = x_log + o,   velocity = v_log + do/dt,
+
+where d0 and dv are the differences of position and velocity vector between
+the simulated and the logged agent at t, and h00, h10 the cubic Hermite
+bases (`perturb._hermite`), so the path leaves the simulated pose with the
+simulated velocity and meets the log, position and velocity, at R; R grows
+with the offset (`OnPolicyConfig.rejoin_seconds` + |d0| / `rejoin_speed`).
+Heading and speed are those of the path's velocity (the log's below
+1 m/s). Agents farther than `max_offset` or turned more than `max_heading`
+from their log are not trained on (their target would be a stunt), nor is an
+agent whose log is invalid at t. Past the end of the log (t + k > 90 in
+WOMD) the future is the last logged state moved on at constant speed and
+heading: the model needs full 8 s futures, and at 10 Hz only the start of a
+plan is executed.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import os
+from typing import Optional, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pcdiff_jax.config import Config, FeaturesConfig, TrainConfig
+from pcdiff_jax.model import features as features_lib
+from pcdiff_jax.model.planner import Models
+from pcdiff_jax.sim import dynamics, env, geometry
+from pcdiff_jax.sim.datatypes import Array, SimulatorState
+from pcdiff_jax.training import data as data_lib
+from pcdiff_jax.training import perturb, trainer
+from pcdiff_jax.training.data import Example, Targets
+
+log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass(frozen=True)
+class OnPolicyConfig:
+  """times: the visited steps cut into examples (the rollout starts at 10 and
+  runs to max(times)); rejoin_seconds + offset / rejoin_speed: the time to
+  re-join the log; max_offset (m), max_heading (rad): farther agents are not
+  trained on; mix: the fraction of each fine-tuning batch drawn from the
+  on-policy examples."""
+  times: tuple[int, ...] = (20, 30, 40, 50)
+  rejoin_seconds: float = 3.0
+  rejoin_speed: float = 2.0
+  max_offset: float = 8.0
+  max_heading: float = 0.8
+  mix: float = 0.5
+
+
+def _extended_log(state: SimulatorState, steps: Array, dt: float) -> tuple[Array, Array]:
+  """Log states (O, K, 4) [x, y, yaw, speed] and validity (O, K) at `steps`
+  (K,), continued past the end of the log at constant speed and heading."""
+  traj = state.log_trajectory
+  last = traj.num_timesteps - 1
+  states = dynamics.states_from_trajectory(traj)                          # (O, T, 4)
+  at = states[:, jnp.clip(steps, 0, last)]
+  beyond = jnp.maximum(steps - last, 0).astype(jnp.float32) * dt            # (K,) seconds past the end
+  end = states[:, last]                                                      # (O, 4)
+  shift = end[:, None, 3:4] * beyond[None, :, None] * geometry.unit(end[:, 2])[:, None, :]
+  at = at.at[..., :2].add(jnp.where((steps > last)[None, :, None], shift, 0.0))
+  return at, traj.valid[:, jnp.clip(steps, 0, last)]
+
+
+def on_policy_targets(state: SimulatorState, feats, horizon: int, cfg: OnPolicyConfig,
+                      dt: float) -> Targets:
+  """Targets (A, ...) of one rolled-out scene at t = state.timestep for the
+  agents of `feats`: from each agent's simulated pose back onto its log."""
+  t = state.timestep
+  idx = feats.agent_index
+  sim_now = dynamics.states_from_trajectory(state.sim_trajectory)[idx, t]   # (A, 4)
+  log_now, log_valid_now = _extended_log(state, t[None], dt)
+  log_now, log_valid_now = log_now[idx, 0], log_valid_now[idx, 0]            # (A, 4), (A,)
+  fut, valid = _extended_log(state, t + 1 + jnp.arange(horizon), dt)
+  fut, valid = fut[idx], valid[idx]                                          # (A, T, 4), (A, T)
+
+  velocity = lambda s: s[..., 3:4] * geometry.unit(s[..., 2])
+  d0 = sim_now[:, :2] - log_now[:, :2]                                       # (A, 2)
+  dv = velocity(sim_now) - velocity(log_now)
+  offset = jnp.linalg.norm(d0, axis=-1)
+  rejoin = cfg.rejoin_seconds + offset / cfg.rejoin_speed                    # (A,)
+  tau = dt * (1 + jnp.arange(horizon))[None] / rejoin[:, None]              # (A, T)
+  h00, h10, d00, d10 = perturb._hermite(tau)
+  o = d0[:, None] * h00[..., None] + (rejoin[:, None, None] * dv[:, None]) * h10[..., None]
+  rate = (d0[:, None] * d00[..., None] + (rejoin[:, None, None] * dv[:, None]) * d10[..., None]) \
+      / rejoin[:, None, None]                                                # (A, T, 2) do/dt
+  xy = fut[..., :2] + o
+  vel = velocity(fut) + rate
+  speed = jnp.linalg.norm(vel, axis=-1)
+  moving = speed > 1.0
+  yaw = jnp.where(moving, jnp.arctan2(vel[..., 1], vel[..., 0]), fut[..., 2])
+  # Signed speed along the heading (a reversing log stays negative).
+  speed = jnp.where(moving, jnp.sum(vel * geometry.unit(yaw), -1), fut[..., 3])
+
+  turned = jnp.abs(geometry.wrap_angle(sim_now[:, 2] - log_now[:, 2]))
+  usable = feats.agent_valid & log_valid_now & (offset <= cfg.max_offset) & (turned <= cfg.max_heading)
+  valid = valid & usable[:, None]
+  origin, yaw0 = sim_now[:, None, :2], sim_now[:, None, 2]
+  local_xy = geometry.to_local(xy, origin, yaw0)
+  local_yaw = geometry.wrap_angle(yaw - yaw0)
+  zero = lambda a: jnp.where(valid if a.ndim == 2 else valid[..., None], a, 0.0)
+  return Targets(future_xy=zero(local_xy), future_yaw=zero(local_yaw), future_speed=zero(speed),
+                 future_valid=valid, current_speed=jnp.where(feats.agent_valid, sim_now[:, 3], 0.0))
+
+
+def on_policy_examples(final: SimulatorState, features: FeaturesConfig, horizon: int,
+                       cfg: OnPolicyConfig, dt: float) -> Example:
+  """Examples (S, ...) of one rolled-out scene at each step of `cfg.times`."""
+  def at(t):
+    state = final.replace(timestep=jnp.asarray(t, jnp.int32))
+    feats = features_lib.scene_features(state, features)
+    return Example(feats=feats, targets=on_policy_targets(state, feats, horizon, cfg, dt))
+  exs = [at(t) for t in cfg.times]
+  return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *exs)
+
+
+def make_collect_fn(actor, model_cfg: Config, cfg: OnPolicyConfig):
+  """jit(vmap): (states (B,), rngs (B,), models) -> Example (B, S, ...) of the
+  policy's rollouts from WOMD's current step to max(times)."""
+  init = env.WOMD_INIT_STEPS
+  num_steps = max(cfg.times) - (init - 1)
+  if min(cfg.times) < init:
+    raise ValueError(f"on-policy times must be >= {init}, got {cfg.times}")
+
+  def one(state, rng, models):
+    final = env.rollout(env.reset(state, init), actor, num_steps, rng, params=models).final_state
+    return on_policy_examples(final, model_cfg.features, model_cfg.encoder.horizon, cfg,
+                              model_cfg.kinematics.dt)
+  return jax.jit(jax.vmap(one, in_axes=(0, 0, None)))
+
+
+def collect(models: Models, model_cfg: Config, policy_cfg, paths: Sequence[str], cfg: OnPolicyConfig,
+            first: int, count: int, batch_size: int = 4, seed: int = 0,
+            progress: bool = True) -> tuple[Example, dict]:
+  """On-policy examples of training scenes [first, first + count) of `paths`.
+
+  `model_cfg` is the config the policy runs with (its agent cap: the SDC and
+  every evaluated agent, `evaluation.with_agent_cap`). Returns numpy
+  Example (N, ...) and info {"scenes", "skipped", "usable_agents",
+  "mean_offset"}. A scenario that fails is skipped with a warning.
+  """
+  from tqdm.auto import tqdm
+  from pcdiff_jax import policy
+  from pcdiff_jax.data import womd
+  actor = policy.actor(model_cfg, policy_cfg)
+  fn = make_collect_fn(actor, model_cfg, cfg)
+  chunks, skipped, done = [], [], 0
+  batches = womd.iterate(paths, batch_size=batch_size, with_meta=True, on_error="skip",
+                         skipped=skipped, max_scenarios=first + count)
+  bar = tqdm(total=count, desc="on-policy rollouts", unit="scene", disable=not progress)
+  seen = 0
+  for index, (state, meta) in enumerate(batches):
+    n = state.shape[0]
+    seen += n
+    if seen <= first:
+      continue
+    keep = slice(max(first - (seen - n), 0), n)
+    try:
+      rngs = jax.random.split(jax.random.fold_in(jax.random.key(seed), index), batch_size)
+      padded = _pad(state, batch_size)
+      out = jax.device_get(fn(padded, rngs, models))
+    except Exception as err:  # a bad scenario must not end a long job
+      log.warning("skipping on-policy batch %s (%s): %s", index, meta.scenario_id, err)
+      continue
+    chunks.append(jax.tree_util.tree_map(lambda a: a[keep].reshape((-1,) + a.shape[2:]), out))
+    done += n - keep.start
+    bar.update(n - keep.start)
+  bar.close()
+  if not chunks:
+    raise ValueError(f"no on-policy example could be collected from {list(paths)!r}")
+  examples = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *chunks)
+  full = examples.feats.agent_valid & examples.targets.future_valid.all(-1)
+  info = {"scenes": done, "skipped": len(skipped), "examples": data_lib.num_examples(examples),
+          "usable_agents": int(full.sum()), "modelled_agents": int(examples.feats.agent_valid.sum())}
+  return examples, info
+
+
+def _pad(state, size: int):
+  n = state.shape[0]
+  if n == size:
+    return state
+  return jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], size - n, 0)], 0), state)
+
+
+def save_examples(path: str, examples: Example, info: dict) -> None:
+  """Writes examples atomically (a temporary name, then renamed)."""
+  tmp = path + ".tmp.npz"
+  np.savez(tmp, __info__=np.array(json.dumps(info)), **data_lib._flatten(examples))
+  os.replace(tmp, path)
+
+
+def load_examples(path: str) -> tuple[Example, dict]:
+  with np.load(path, allow_pickle=False) as z:
+    arrays = {k: z[k] for k in z.files}
+  info = json.loads(str(arrays.pop("__info__")))
+  return data_lib._unflatten(data_lib._template(), arrays), info
+
+
+def mixed_batch_at(log_examples: Example, on_policy: Example, step: int, batch_size: int,
+                   mix: float, seed: int) -> tuple[Example, Example]:
+  """(log batch, on-policy batch) of global `step`: round(mix * batch_size)
+  on-policy examples and the rest logged ones; a pure function of (seed, step)."""
+  n_on = int(round(mix * batch_size))
+  n_log = batch_size - n_on
+  take = lambda ex, n, salt: data_lib.batch_at(ex, step, n, seed + salt) if n else \
+      jax.tree_util.tree_map(lambda a: a[:0], ex)
+  return take(log_examples, n_log, 0), take(on_policy, n_on, 7919)
+
+
+def _concat(a: Example, b: Example) -> Example:
+  return jax.tree_util.tree_map(lambda x, y: jnp.concatenate([x, y], 0), a, b)
+
+
+def finetune_encoder(encoder_params, model_cfg: Config, log_examples: Example, on_policy: Example,
+                     workdir: str, train_cfg: TrainConfig, cfg: OnPolicyConfig,
+                     max_minutes: Optional[float] = None, progress: bool = True):
+  """Fine-tunes the encoder in WORKDIR/encoder (resumable) on mixed batches
+  with stage 1's loss. Returns (state, {})."""
+  from pcdiff_jax import config as config_lib
+  from pcdiff_jax.model import encoder
+  from pcdiff_jax.training import encoder_loss, encoder_stage
+  cfg_ft = dataclasses.replace(model_cfg, encoder_train=train_cfg)
+  tx = trainer.make_optimizer(train_cfg)
+  state = trainer.create_state(encoder_params, tx, train_cfg.seed)
+
+  def loss_fn(params, batch, rng):
+    logged, visited = batch
+    rng, k_perturb = jax.random.split(rng)
+    logged = perturb.perturb(logged, k_perturb, train_cfg.perturb, model_cfg.kinematics.dt)
+    both = _concat(logged, visited)
+    out = encoder.apply(params, both.feats, model_cfg.encoder, rng=rng)
+    return encoder_loss.proposal_loss(out, both.targets, cls_weight=train_cfg.cls_weight)
+  step_fn = trainer.make_train_step(loss_fn, tx)
+  batch_at = lambda step: mixed_batch_at(log_examples, on_policy, step, train_cfg.batch_size,
+                                         cfg.mix, train_cfg.seed)
+  return trainer.fit(state, step_fn, batch_at, None, train_cfg,
+                     os.path.join(workdir, encoder_stage.STAGE_DIR), config_lib.to_dict(cfg_ft),
+                     desc="on-policy encoder", max_minutes=max_minutes, progress=progress,
+                     schedule=trainer.learning_rate_schedule(train_cfg),
+                     compare=encoder_stage.CONFIG_SECTIONS)
+
+
+def finetune(models: Models, model_cfg: Config, log_examples: Example, on_policy: Example,
+             workdir: str, train_cfg: TrainConfig, cfg: OnPolicyConfig,
+             val_examples: Optional[Example] = None, max_minutes: Optional[float] = None,
+             progress: bool = True):
+  """Fine-tunes the denoiser in WORKDIR/diffusion (resumable) from `models`.
+
+  The latent statistics and the encoder stay frozen; the saved checkpoint
+  has stage 2's layout (`diffusion_stage.load(workdir)` reads it). Returns
+  (state, last validation metrics)."""
+  from pcdiff_jax import config as config_lib
+  from pcdiff_jax.training import diffusion_stage
+  cfg_ft = dataclasses.replace(model_cfg, diffusion_train=train_cfg)
+  log_examples = diffusion_stage.full_future_examples(log_examples)
+  on_policy = diffusion_stage.full_future_examples(on_policy)
+  extra = {"encoder": models.encoder, "stats": models.stats}
+  tx = trainer.make_optimizer(train_cfg)
+  state = trainer.create_state(models.denoiser, tx, train_cfg.seed, extra=extra)
+
+  def loss_fn(params, extra, batch, rng):
+    logged, visited = batch
+    rng, k_perturb = jax.random.split(rng)
+    logged = perturb.perturb(logged, k_perturb, train_cfg.perturb, model_cfg.kinematics.dt)
+    return diffusion_stage.diffusion_loss(params, extra, _concat(logged, visited), rng, cfg_ft)
+  step_fn = trainer.make_train_step(loss_fn, tx, with_extra=True)
+  evaluate = None
+  if val_examples is not None:
+    ev = diffusion_stage.make_evaluate(cfg_ft, diffusion_stage.full_future_examples(val_examples),
+                                       train_cfg.eval_batch_size)
+    evaluate = lambda st: ev(st.params, st.extra)
+  batch_at = lambda step: mixed_batch_at(log_examples, on_policy, step, train_cfg.batch_size,
+                                         cfg.mix, train_cfg.seed)
+  return trainer.fit(state, step_fn, batch_at, evaluate, train_cfg, os.path.join(workdir, "diffusion"),
+                     config_lib.to_dict(cfg_ft), desc="on-policy fine-tune", max_minutes=max_minutes,
+                     progress=progress, schedule=trainer.learning_rate_schedule(train_cfg),
+                     compare=diffusion_stage.CONFIG_SECTIONS, evaluate_state=True)
+

@@ -1,0 +1,86 @@
+"""On-policy targets: from the simulated pose back onto the log (training.closed_loop)."""
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from conftest import make_scene
+from pcdiff_jax.config import get_config
+from pcdiff_jax.model import features as features_lib
+from pcdiff_jax.sim import geometry
+from pcdiff_jax.training import closed_loop
+from pcdiff_jax.training import data as data_lib
+
+CFG = get_config("tiny")
+T, DT = 80, 0.1
+
+
+def _drifted(t: int, shift, turn: float, obj: int = 1):
+  """make_scene (91 steps) at step t with object `obj` moved by `shift` (m)
+  and turned by `turn` (rad) in the simulation only; the log is unchanged."""
+  state = make_scene(num_steps=91)
+  sim = state.sim_trajectory
+  sim = sim.replace(x=sim.x.at[obj, t].add(shift[0]), y=sim.y.at[obj, t].add(shift[1]),
+                    yaw=sim.yaw.at[obj, t].add(turn))
+  speed = sim.vel_x[obj, t]
+  sim = sim.replace(vel_x=sim.vel_x.at[obj, t].set(speed * jnp.cos(turn)),
+                    vel_y=sim.vel_y.at[obj, t].set(speed * jnp.sin(turn)))
+  state = state.replace(sim_trajectory=sim, timestep=jnp.int32(t))
+  return state, features_lib.scene_features(state, CFG.features)
+
+
+def _slot(feats, obj):
+  return int(np.flatnonzero(np.asarray(feats.agent_index) == obj)[0])
+
+
+def test_agents_on_their_log_get_the_log_and_a_straight_tail_past_its_end():
+  state, feats = _drifted(30, (0.0, 0.0), 0.0)
+  cfg = closed_loop.OnPolicyConfig()
+  got = closed_loop.on_policy_targets(state, feats, T, cfg, DT)
+  log = data_lib.targets_at(state, feats, T)
+  inside = np.asarray(log.future_valid)                          # steps 31..90
+  for field in ("future_xy", "future_yaw", "future_speed"):
+    np.testing.assert_allclose(np.asarray(getattr(got, field))[inside],
+                               np.asarray(getattr(log, field))[inside], atol=2e-3)
+  # Past step 90 the log is continued at constant speed: make_scene drives straight.
+  a = _slot(feats, 1)
+  k = np.arange(1, T + 1)
+  np.testing.assert_allclose(np.asarray(got.future_xy[a, :, 0]), 8.0 * DT * k, atol=2e-3)
+  assert bool(got.future_valid[a].all())
+
+
+def test_a_drifted_agent_leaves_its_simulated_pose_and_rejoins_the_log():
+  shift, turn = (0.0, 1.5), 0.1
+  state, feats = _drifted(20, shift, turn)
+  cfg = closed_loop.OnPolicyConfig(rejoin_seconds=3.0, rejoin_speed=2.0)
+  got = closed_loop.on_policy_targets(state, feats, T, cfg, DT)
+  a = _slot(feats, 1)
+  assert bool(got.future_valid[a].all())
+  # The first step continues from the simulated pose, along its heading.
+  np.testing.assert_allclose(np.asarray(got.future_xy[a, 0]), [8.0 * DT, 0.0], atol=0.05)
+  assert abs(float(got.future_yaw[a, 0])) < 0.03
+  # After R = 3 + 1.5 / 2 s it is the log, seen from the simulated frame.
+  sim = state.sim_trajectory
+  origin = jnp.stack([sim.x[1, 20], sim.y[1, 20]])
+  log_xy = jnp.stack([state.log_trajectory.x[1, 21:91], state.log_trajectory.y[1, 21:91]], -1)
+  log_local = geometry.to_local(log_xy, origin, sim.yaw[1, 20])
+  after = int(np.ceil(3.75 / DT))
+  np.testing.assert_allclose(np.asarray(got.future_xy[a, after:70]), np.asarray(log_local[after:70]), atol=1e-3)
+  # Smooth: no step differs from the log's 0.8 m by more than a few cm.
+  steps = np.linalg.norm(np.diff(np.asarray(got.future_xy[a]), axis=0), axis=-1)
+  assert np.abs(steps - 0.8).max() < 0.08
+  # Too far from the log: not trained on (future invalid), still in the scene.
+  state, feats = _drifted(20, (0.0, 12.0), 0.0)
+  far = closed_loop.on_policy_targets(state, feats, T, cfg, DT)
+  b = _slot(feats, 1)
+  assert bool(feats.agent_valid[b]) and not bool(far.future_valid[b].any())
+
+
+def test_mixed_batches_hold_the_asked_share_of_on_policy_examples():
+  import jax
+  ex = jax.tree_util.tree_map(lambda a: np.arange(10)[:, None] + 0 * np.asarray(a)[None, :1], {"v": np.zeros(1)})
+  on = jax.tree_util.tree_map(lambda a: 100 + a, ex)
+  logged, visited = closed_loop.mixed_batch_at(ex, on, 3, 8, 0.25, 0)
+  assert logged["v"].shape[0] == 6 and visited["v"].shape[0] == 2 and np.all(visited["v"] >= 100)
+  again = closed_loop.mixed_batch_at(ex, on, 3, 8, 0.25, 0)
+  np.testing.assert_array_equal(again[1]["v"], visited["v"])
