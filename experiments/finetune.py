@@ -6,8 +6,8 @@
 Each round rolls the current policy out in closed loop (10 Hz, warm-started,
 SDC on its log, as `experiments.rollout` evaluates it) on --scenes training
 scenes not used by an earlier round, cuts examples at the visited steps, and
-fine-tunes the denoiser for --steps on batches that mix them with the logged
-examples (`pcdiff_jax.training.closed_loop`). Round r keeps its examples in
+fine-tunes the denoiser for --steps on batches that mix the on-policy examples
+of every round so far (DAgger) with the logged examples (`pcdiff_jax.training.closed_loop`). Round r keeps its examples in
 WORKDIR/round-r/on_policy.npz and its model in WORKDIR/round-r; the last
 round's model is WORKDIR itself (WORKDIR/diffusion, WORKDIR/encoder), so
 `--checkpoint WORKDIR` and `experiments.export` take it. Run the same command
@@ -23,6 +23,9 @@ import os
 import shutil
 import sys
 import time
+
+import jax
+import numpy as np
 
 from pcdiff_jax.data import womd
 
@@ -108,7 +111,7 @@ def main(argv=None) -> int:
     logged, _ = data_lib.load_or_build(files, spec, cache, "train", progress=not args.no_progress)
     os.makedirs(args.workdir, exist_ok=True)
     source = args.source
-    history = []
+    history, gathered = [], []
     for r in range(args.rounds):
       round_dir = os.path.join(args.workdir, f"round-{r}")
       os.makedirs(round_dir, exist_ok=True)
@@ -124,6 +127,9 @@ def main(argv=None) -> int:
         info["minutes"] = (time.time() - t0) / 60
         closed_loop.save_examples(path, on_policy, info)
       print(f"round {r}: {json.dumps(info)}")
+      gathered.append(on_policy)
+      # DAgger: every round trains on the states of all rounds so far.
+      on_policy = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *gathered)
       t1 = time.time()
       if args.encoder_steps:
         etc = dataclasses.replace(model_cfg.encoder_train, total_steps=args.encoder_steps,

@@ -14,7 +14,7 @@ import os
 import shutil
 from typing import Optional
 
-DEFAULT_NAME = "pcdiff-cpu-v3"
+DEFAULT_NAME = "pcdiff-cpu-v4"
 _STAGES = ("encoder", "diffusion")
 
 
