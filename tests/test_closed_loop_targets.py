@@ -1,6 +1,7 @@
 """On-policy targets: from the simulated pose back onto the log (training.closed_loop)."""
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -26,7 +27,12 @@ def _drifted(t: int, shift, turn: float, obj: int = 1):
   sim = sim.replace(vel_x=sim.vel_x.at[obj, t].set(speed * jnp.cos(turn)),
                     vel_y=sim.vel_y.at[obj, t].set(speed * jnp.sin(turn)))
   state = state.replace(sim_trajectory=sim, timestep=jnp.int32(t))
-  return state, features_lib.scene_features(state, CFG.features)
+  return state, _features(state)
+
+
+_features = jax.jit(lambda state: features_lib.scene_features(state, CFG.features))
+_targets = jax.jit(lambda state, feats, cfg: closed_loop.on_policy_targets(state, feats, T, cfg, DT),
+                   static_argnums=2)
 
 
 def _slot(feats, obj):
@@ -36,7 +42,7 @@ def _slot(feats, obj):
 def test_agents_on_their_log_get_the_log_and_a_straight_tail_past_its_end():
   state, feats = _drifted(30, (0.0, 0.0), 0.0)
   cfg = closed_loop.OnPolicyConfig()
-  got = closed_loop.on_policy_targets(state, feats, T, cfg, DT)
+  got = _targets(state, feats, cfg)
   log = data_lib.targets_at(state, feats, T)
   inside = np.asarray(log.future_valid)                          # steps 31..90
   for field in ("future_xy", "future_yaw", "future_speed"):
@@ -53,7 +59,7 @@ def test_a_drifted_agent_leaves_its_simulated_pose_and_rejoins_the_log():
   shift, turn = (0.0, 1.5), 0.1
   state, feats = _drifted(20, shift, turn)
   cfg = closed_loop.OnPolicyConfig(rejoin_seconds=3.0, rejoin_speed=2.0)
-  got = closed_loop.on_policy_targets(state, feats, T, cfg, DT)
+  got = _targets(state, feats, cfg)
   a = _slot(feats, 1)
   assert bool(got.future_valid[a].all())
   # The first step continues from the simulated pose, along its heading.
@@ -71,13 +77,12 @@ def test_a_drifted_agent_leaves_its_simulated_pose_and_rejoins_the_log():
   assert np.abs(steps - 0.8).max() < 0.08
   # Too far from the log: not trained on (future invalid), still in the scene.
   state, feats = _drifted(20, (0.0, 12.0), 0.0)
-  far = closed_loop.on_policy_targets(state, feats, T, cfg, DT)
+  far = _targets(state, feats, cfg)
   b = _slot(feats, 1)
   assert bool(feats.agent_valid[b]) and not bool(far.future_valid[b].any())
 
 
 def test_mixed_batches_hold_the_asked_share_of_on_policy_examples():
-  import jax
   ex = jax.tree_util.tree_map(lambda a: np.arange(10)[:, None] + 0 * np.asarray(a)[None, :1], {"v": np.zeros(1)})
   on = jax.tree_util.tree_map(lambda a: 100 + a, ex)
   logged, visited = closed_loop.mixed_batch_at(ex, on, 3, 8, 0.25, 0)
