@@ -118,14 +118,14 @@ def main(argv=None) -> int:
       path = os.path.join(round_dir, "on_policy.npz")
       t0 = time.time()
       if os.path.exists(path):
-        on_policy, info = closed_loop.load_examples(path)
+        on_policy, info = data_lib.read_examples(path)
       else:
         on_policy, info = closed_loop.collect(
             models, run_cfg, policy.PolicyConfig(), files, ocfg, first=r * args.scenes,
             count=args.scenes, batch_size=args.rollout_batch, seed=args.seed + r,
             progress=not args.no_progress)
         info["minutes"] = (time.time() - t0) / 60
-        closed_loop.save_examples(path, on_policy, info)
+        data_lib.write_examples(path, on_policy, info)
       print(f"round {r}: {json.dumps(info)}")
       gathered.append(on_policy)
       # DAgger: every round trains on the states of all rounds so far.

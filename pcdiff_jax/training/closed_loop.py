@@ -42,7 +42,6 @@ plan is executed.
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import os
 from typing import Optional, Sequence
@@ -170,7 +169,7 @@ def collect(models: Models, model_cfg: Config, policy_cfg, paths: Sequence[str],
   "mean_offset"}. A scenario that fails is skipped with a warning.
   """
   from tqdm.auto import tqdm
-  from pcdiff_jax import policy
+  from pcdiff_jax import evaluation, policy
   from pcdiff_jax.data import womd
   actor = policy.actor(model_cfg, policy_cfg)
   fn = make_collect_fn(actor, model_cfg, cfg)
@@ -187,7 +186,7 @@ def collect(models: Models, model_cfg: Config, policy_cfg, paths: Sequence[str],
     keep = slice(max(first - (seen - n), 0), n)
     try:
       rngs = jax.random.split(jax.random.fold_in(jax.random.key(seed), index), batch_size)
-      padded = _pad(state, batch_size)
+      padded = evaluation._pad_batch(state, batch_size)
       out = jax.device_get(fn(padded, rngs, models))
     except Exception as err:  # a bad scenario must not end a long job
       log.warning("skipping on-policy batch %s (%s): %s", index, meta.scenario_id, err)
@@ -203,27 +202,6 @@ def collect(models: Models, model_cfg: Config, policy_cfg, paths: Sequence[str],
   info = {"scenes": done, "skipped": len(skipped), "examples": data_lib.num_examples(examples),
           "usable_agents": int(full.sum()), "modelled_agents": int(examples.feats.agent_valid.sum())}
   return examples, info
-
-
-def _pad(state, size: int):
-  n = state.shape[0]
-  if n == size:
-    return state
-  return jax.tree_util.tree_map(lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], size - n, 0)], 0), state)
-
-
-def save_examples(path: str, examples: Example, info: dict) -> None:
-  """Writes examples atomically (a temporary name, then renamed)."""
-  tmp = path + ".tmp.npz"
-  np.savez(tmp, __info__=np.array(json.dumps(info)), **data_lib._flatten(examples))
-  os.replace(tmp, path)
-
-
-def load_examples(path: str) -> tuple[Example, dict]:
-  with np.load(path, allow_pickle=False) as z:
-    arrays = {k: z[k] for k in z.files}
-  info = json.loads(str(arrays.pop("__info__")))
-  return data_lib._unflatten(data_lib._template(), arrays), info
 
 
 def mixed_batch_at(log_examples: Example, on_policy: Example, step: int, batch_size: int,

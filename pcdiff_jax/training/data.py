@@ -187,19 +187,30 @@ def load_or_build(paths, spec: CacheSpec, cache_dir: str, split: str,
   files = womd.expand_paths(paths)
   key = cache_key(files, spec) + (f"-first{limit}" if limit else "")
   path = os.path.join(cache_dir, f"{split}-{key}.npz")
-  template = _template()
   if os.path.exists(path):
-    with np.load(path, allow_pickle=False) as z:
-      arrays = {k: z[k] for k in z.files}
-    info = json.loads(str(arrays.pop("__info__")))
-    return _unflatten(template, arrays), {**info, "path": path}
+    examples, info = read_examples(path)
+    return examples, {**info, "path": path}
   examples, ids, skipped = build_examples(files, spec, progress=progress, limit=limit)
   os.makedirs(cache_dir, exist_ok=True)
   info = {"ids": ids, "skipped": skipped, "files": files}
+  write_examples(path, examples, info)
+  return examples, {**info, "path": path}
+
+
+def write_examples(path: str, examples: Example, info: dict) -> None:
+  """Writes numpy examples and a JSON-able info dict to `path` (.npz) atomically:
+  a temporary name, then renamed, so an interrupted write leaves no file."""
   tmp = path + ".tmp.npz"
   np.savez(tmp, __info__=np.array(json.dumps(info)), **_flatten(examples))
   os.replace(tmp, path)
-  return examples, {**info, "path": path}
+
+
+def read_examples(path: str) -> tuple[Example, dict]:
+  """(examples, info) of a file written by `write_examples`."""
+  with np.load(path, allow_pickle=False) as z:
+    arrays = {k: z[k] for k in z.files}
+  info = json.loads(str(arrays.pop("__info__")))
+  return _unflatten(_template(), arrays), info
 
 
 def num_examples(examples) -> int:
