@@ -20,7 +20,7 @@ demo: install   # scenes -> both training stages -> closed-loop table of ours an
 	$(PY) -m experiments.demo --out $(DEMO_OUT)
 
 test: install
-	$(PY) -m pytest -q -n $(PYTEST_WORKERS)
+	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile
 
 data: install   # the built-in dataset (docs/DATA.md): 2000 train + 200 val scenes in data/synth
 	$(PY) -m experiments.make_data --out data/synth --num-train 2000 --num-val 200 --seed 0

@@ -44,6 +44,10 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="pcdiff --warm-start: the diffusion step the previous plan is noised to (of 100)")
   p.add_argument("--warm-ddim-steps", type=int, default=evaluation.EvalConfig.warm_ddim_steps,
                  help="pcdiff --warm-start: DDIM steps from --warm-step")
+  p.add_argument("--temporal-ensemble", type=float, nargs=2, metavar=("ACCEL", "YAW_RATE"),
+                 default=evaluation.EvalConfig.temporal_ensemble,
+                 help="pcdiff: weights in [0, 1) of the earlier plans in the executed plan, per action "
+                      "channel (exponential temporal ensembling: smooths the executed actions; 0 = off)")
   p.add_argument("--simpl-ar-sample", action="store_true",
                  help="simpl-ar: draw each agent's mode by its probability (default: the top mode)")
   p.add_argument("--num-rollouts", type=int, default=1,
@@ -83,6 +87,8 @@ def parse_args(argv=None) -> argparse.Namespace:
       p.error(f"--{name.replace('_', '-')} must be >= 1")
   if not 0 <= args.warm_step <= 99:
     p.error("--warm-step must be in [0, 99]")
+  if not all(0.0 <= m < 1.0 for m in args.temporal_ensemble):
+    p.error("--temporal-ensemble weights must be in [0, 1)")
   if not 1 <= args.warm_ddim_steps <= args.warm_step + 1:
     p.error("--warm-ddim-steps must be in [1, --warm-step + 1]")
   if args.max_scenarios is not None and args.max_scenarios < 1:
@@ -115,6 +121,7 @@ def main(argv=None) -> int:
                               gifs=args.gifs, seed=args.seed, score_adversary=args.score_adversary,
                               max_scenarios=args.max_scenarios, warm_start=args.warm_start,
                               warm_step=args.warm_step, warm_ddim_steps=args.warm_ddim_steps,
+                              temporal_ensemble=tuple(args.temporal_ensemble),
                               simpl_ar_sample=args.simpl_ar_sample,
                               metrics=MetricsConfig(max_reactive_agents=args.max_agents),
                               guidance=GuidanceConfig(

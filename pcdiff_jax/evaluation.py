@@ -51,7 +51,8 @@ class EvalConfig:
   the ego against the most threatening agent (the pursuer adversarial
   guidance would pick) when the run is not adversarial, for comparison.
   max_scenarios: the first N scenarios of the files only. warm_start,
-  warm_step, warm_ddim_steps: amortised replanning of the diffusion policies
+  warm_step, warm_ddim_steps: amortised replanning of the diffusion policies,
+  temporal_ensemble: their executed plan averaged over replans
   (`policy.PolicyConfig`). simpl_ar_sample: SIMPL-AR draws its modes by their
   probabilities instead of taking the top mode.
 
@@ -83,6 +84,7 @@ class EvalConfig:
   warm_start: bool = True
   warm_step: int = 30
   warm_ddim_steps: int = 2
+  temporal_ensemble: tuple[float, float] = (0.0, 0.0)
   simpl_ar_sample: bool = False
 
   @property
@@ -129,7 +131,8 @@ def _method_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
                              replan_every=cfg.replan_every, guidance=cfg.guidance,
                              consistent_noise=cfg.consistent_noise, execute=cfg.execute,
                              prior_centre=cfg.prior_centre, warm_start=cfg.warm_start,
-                             warm_step=cfg.warm_step, warm_ddim_steps=cfg.warm_ddim_steps)
+                             warm_step=cfg.warm_step, warm_ddim_steps=cfg.warm_ddim_steps,
+                             temporal_ensemble=cfg.temporal_ensemble)
   return policy.actor(with_agent_cap(model_cfg, cfg.metrics), pcfg), models
 
 

@@ -104,13 +104,14 @@ def tiny_models():
   from pcdiff_jax.training import diffusion_stage
   cfg = get_config("tiny")
   state = make_scene(num_steps=91)
-  ex = jax.tree_util.tree_map(lambda a: a[None], data_lib.example_at(state, 10, cfg.features, 80))
+  # Jitted: eager example building and encoding compile op by op (~50 s on CPU).
+  ex = jax.jit(lambda s: jax.tree_util.tree_map(lambda a: a[None], data_lib.example_at(s, 10, cfg.features, 80)))(state)
   enc = encoder.init(jax.random.key(0), ex.feats, cfg.encoder)
   # make_scene's logs are straight at constant speed: fit on the (random)
   # proposals too, so that latents decode into actions of a real size.
   with_props = dataclasses.replace(cfg, diffusion=dataclasses.replace(cfg.diffusion, pca_proposal_weight=0.5))
   stats = diffusion_stage.fit_latent(enc, with_props, ex, 1, batch_size=1)
-  cond = planner.condition(enc, stats, ex.feats, cfg)
+  cond = jax.jit(lambda e, st, f: planner.condition(e, st, f, cfg))(enc, stats, ex.feats)
   one = jax.tree_util.tree_map(lambda a: a[0], cond.inputs)
   den = denoiser_lib.init(jax.random.key(1), cond.mu[0], jnp.int32(0), one, cfg.diffusion.denoiser)
   return planner.Models(encoder=enc, denoiser=den, stats=stats)
@@ -123,3 +124,4 @@ def scene():
 
 def stack_states(states):
   return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *states)
+

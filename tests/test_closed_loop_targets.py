@@ -55,6 +55,24 @@ def test_agents_on_their_log_get_the_log_and_a_straight_tail_past_its_end():
   assert bool(got.future_valid[a].all())
 
 
+def test_a_log_that_ends_early_continues_straight_and_its_agent_keeps_a_target():
+  """A vehicle whose log ends at step 40 (a synthetic route leaving the map):
+  before and after that step, its target is the log continued at constant
+  speed, so the policy is never left without one."""
+  cfg = closed_loop.OnPolicyConfig()
+  k = np.arange(1, T + 1)
+  for t in (30, 50):
+    state, _ = _drifted(t, (0.0, 0.0), 0.0)
+    log = state.log_trajectory
+    state = state.replace(log_trajectory=log.replace(valid=log.valid.at[1, 41:].set(False)))
+    feats = _features(state)
+    got = _targets(state, feats, cfg)
+    a = _slot(feats, 1)
+    assert bool(got.future_valid[a].all())
+    np.testing.assert_allclose(np.asarray(got.future_xy[a, :, 0]), 8.0 * DT * k, atol=2e-3)
+    np.testing.assert_allclose(np.asarray(got.future_speed[a]), 8.0, atol=1e-3)
+
+
 def test_a_drifted_agent_leaves_its_simulated_pose_and_rejoins_the_log():
   shift, turn = (0.0, 1.5), 0.1
   state, feats = _drifted(20, shift, turn)

@@ -51,6 +51,8 @@ def test_the_scene_would_push_controlled_agents_out():
 
 
 def _actors():
+  # Guided plans: the adversarial mode covers the objective mode's path too
+  # (the same guided sampler, plus the pursuer chosen at init).
   guided = lambda mode: policy.PolicyConfig(ddim_steps=2, guidance=GuidanceConfig(mode=mode))
   return {
       "cv": (baselines.constant_velocity(baselines.reactive_agents(8)), None),
@@ -58,7 +60,6 @@ def _actors():
       "simpl-ar": (simpl_ar.simpl_ar(CFG, simpl_ar.SimplARConfig(sample=True)), "encoder"),
       "pcdiff-warm": (policy.actor(CFG, policy.PolicyConfig(ddim_steps=2, warm_start=True, warm_step=20)),
                       "models"),
-      "pcdiff-objective": (policy.actor(CFG, guided("objective")), "models"),
       "pcdiff-adversarial": (policy.actor(CFG, guided("adversarial")), "models"),
   }
 

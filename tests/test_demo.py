@@ -1,37 +1,34 @@
-"""The main job (`make demo`) end to end at the tiny preset: scenes, both
-training stages, closed-loop rollouts and the table."""
+"""The main job (`make demo`): its `--train` path. The job end to end on a
+trained model is in test_trained_pipeline.py."""
 from __future__ import annotations
 
-import json
+import glob
 import os
+
+import pytest
 
 from experiments import demo
 
 
-def test_demo_pipeline_runs_end_to_end(tmp_path):
+def test_demo_train_runs_both_stages_on_its_scenes_and_stops_on_failure(tmp_path, monkeypatch):
+  """`--train` hands its scenes to `experiments.train --stage all` (tested on its
+  own in test_training); a failing step stops the demo with its name."""
+  calls = []
+
+  class FakeTrain:
+    @staticmethod
+    def main(argv):
+      calls.append(argv)
+      return 1
+  FakeTrain.main.__module__ = "experiments.train"
+  monkeypatch.setattr(demo, "train", FakeTrain)
   out = str(tmp_path / "demo")
-  code = demo.main(["--out", out, "--train", "--config", "tiny", "--num-train", "8", "--num-val", "2",
-                    "--methods", "pcdiff", "cv", "--batch-size", "2", "--real", "/nonexistent",
-                    "--no-progress"])
-  assert code == 0
-  for method in ("pcdiff", "cv"):
-    with open(os.path.join(out, "eval", method, "metrics.json")) as f:
-      summary = json.load(f)
-    assert summary["num_scenarios"] == 2 and not summary["skipped"]
-    assert os.listdir(os.path.join(out, "eval", method, "gifs"))
-  with open(os.path.join(out, "table.md")) as f:
-    text = f.read()
-  assert "ours (prior, 5 DDIM steps" in text and "constant velocity" in text
-  # The closed-loop diagnostics run on the same model.
-  from experiments import diagnose
-  val = os.path.join(out, "data", "val-00000-of-00001.tfrecord")
-  common = ["--checkpoint", os.path.join(out, "model"), "--scenarios", val, "--num-scenes", "1"]
-  diagnose.main(common + ["--out", str(tmp_path / "first.json"), "first-action"])
-  diagnose.main(common + ["--out", str(tmp_path / "replay.json"), "replay", "--plans", "log,top1-latent"])
-  with open(tmp_path / "first.json") as f:
-    rows = json.load(f)["rows"]
-  assert set(rows) == {"log", "log_latent", "top1", "prior_centre", "sample"}
-  with open(tmp_path / "replay.json") as f:
-    replay = json.load(f)["rows"]
-  assert replay["log"]["min_ade"] < 0.5                 # the log's own actions reproduce the log
-  assert replay["top1-latent"]["min_ade"] > replay["log"]["min_ade"]
+  with pytest.raises(SystemExit, match="step 'training' failed"):
+    demo.main(["--out", out, "--train", "--config", "tiny", "--num-train", "8", "--num-val", "1",
+               "--no-progress"])
+  argv = calls[0]
+  assert argv[:4] == ["--stage", "all", "--config", "tiny"]
+  assert argv[argv.index("--workdir") + 1] == os.path.join(out, "model")
+  data = argv[argv.index("--data") + 1]
+  assert data == os.path.join(out, "data", "train-*") and len(glob.glob(data)) >= 1
+  assert demo.main(["--out", out, "--checkpoint", str(tmp_path / "none")]) == 2    # no model there

@@ -35,6 +35,11 @@ def test_collision_and_offroad_on_a_hand_built_scene():
   assert int(on_log.collided) == 0 and int(on_log.became_offroad) == 0 and int(on_log.start_offroad) == 1
   r = c.rates()
   assert r["collision_rate"] == 0.5 and r["offroad_rate"] == 1 / 3
+  assert int(c.offroad_past_log) == 0 and r["offroad_past_log_rate"] == 0.0
+  # The same drift once agent 1's log has ended (step 6 on) counts as off-road past its log.
+  ended = s.replace(log_trajectory=s.log_trajectory.replace(valid=s.log_trajectory.valid.at[1, 6:].set(False)))
+  c2 = _counts(ended, sim, k=4)
+  assert int(c2.became_offroad) == 1 and int(c2.offroad_past_log) == 1
 
 
 def test_pairs_overlapping_at_start_are_not_collisions():

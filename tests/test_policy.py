@@ -1,6 +1,7 @@
 """The closed-loop policy: actor contract, one fused scan, no recompiles, replanning."""
 from __future__ import annotations
 
+import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -211,3 +212,32 @@ def test_warm_start_advances_the_previous_plan(models):
   assert np.abs(new - old).mean() < np.abs(np.asarray(cold)[controlled] - old).mean()
   with pytest.raises(ValueError, match="warm_ddim_steps"):
     policy.actor(CFG, policy.PolicyConfig(warm_start=True, warm_step=1, warm_ddim_steps=3))
+
+
+def test_temporal_ensemble_averages_the_plans_made_for_each_step(models):
+  previous = jnp.ones((3, 5, 2))
+  new = jnp.zeros((3, 5, 2))
+  had = jnp.array([True, True, False])                           # agent 2 had no plan
+  out = np.asarray(jax.jit(policy.ensemble_plans)(
+      previous, had, jnp.int32(2), new, jnp.array([True, False, True]), jnp.array([0.75, 0.25])))
+  np.testing.assert_allclose(out[0, :3], [[0.75, 0.25]] * 3)     # the steps both plans cover, per channel
+  np.testing.assert_array_equal(out[0, 3:], 0.0)                 # past the previous plan's end
+  np.testing.assert_array_equal(out[1:], 0.0)                    # no new plan / no previous plan
+  # In closed loop: the executed action is the ensemble's, replanning every step.
+  state = env.reset(make_scene(num_steps=91))
+  pcfg = policy.PolicyConfig(ddim_steps=2, temporal_ensemble=(0.5, 0.5))
+  act = policy.actor(CFG, pcfg)
+  select = jax.jit(act.select_action)
+  first = select(models, state, act.init(jax.random.key(0), state), jax.random.key(1))
+  state2 = env.step(state, first.action, first.is_controlled)
+  second = select(models, state2, first.actor_state, jax.random.key(2))
+  assert select._cache_size() == 1
+  controlled = np.asarray(first.actor_state.controlled)
+  fresh = policy.plan_actions(models, state2, CFG, dataclasses.replace(pcfg, temporal_ensemble=(0.0, 0.0)),
+                              jax.random.key(2), controlled=first.actor_state.controlled,
+                              warm=policy.WarmStart(actions=policy.advance_plan(first.actor_state.plan, jnp.int32(1)),
+                                                    has=first.actor_state.plan_valid & first.actor_state.controlled))[0]
+  expect = 0.5 * np.asarray(first.actor_state.plan)[:, 1] + 0.5 * np.asarray(fresh)[:, 0]
+  np.testing.assert_allclose(np.asarray(second.action.data)[controlled], expect[controlled], atol=1e-5)
+  with pytest.raises(ValueError, match="temporal_ensemble"):
+    policy.actor(CFG, policy.PolicyConfig(temporal_ensemble=(1.0, 0.0)))

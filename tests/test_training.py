@@ -1,8 +1,7 @@
-"""Training: losses and metrics, batches, the train CLI (resume, config guard), both stages."""
+"""Training: losses and metrics, batches, example targets, the train CLI on bad input
+(the CLI on a trained model: test_trained_pipeline.py)."""
 from __future__ import annotations
 
-import json
-import os
 
 import jax
 import jax.numpy as jnp
@@ -112,87 +111,6 @@ def test_diffusion_loss_finite_with_masked_agents(scene_example):
 def _train(argv):
   from experiments import train
   return train.main(argv)
-
-
-def test_train_cli_resume_guard_and_both_stages(tmp_path, womd_path, capsys):
-  work = str(tmp_path / "w")
-  base = ["--config", "tiny", "--data", womd_path, "--val-data", womd_path, "--workdir", work,
-          "--no-progress"]
-  assert _train(["--stage", "encoder", "--steps", "2"] + base) == 0
-  assert _train(["--stage", "encoder", "--steps", "4"] + base) == 0     # resumes at 2
-  lines = [json.loads(l) for l in open(os.path.join(work, "encoder", "metrics.jsonl"))]
-  assert [d["step"] for d in lines if "train/loss" in d] == [1, 2, 3, 4]   # no step repeated
-  assert any("val/min_fde" in d for d in lines)
-  # TensorBoard event files hold the same scalars, tagged for its scalars plugin.
-  import glob
-
-  import tensorflow as tf
-  from tensorflow.core.util import event_pb2
-  tags = set()
-  for f in glob.glob(os.path.join(work, "encoder", "tb", "*")):
-    for rec in tf.data.TFRecordDataset(f):
-      for v in event_pb2.Event.FromString(rec.numpy()).summary.value:
-        tags.add((v.tag, v.metadata.plugin_data.plugin_name))
-  assert ("train/loss", "scalars") in tags and ("val/min_fde", "scalars") in tags
-  # Another model in the same workdir is refused with the differing fields named.
-  assert _train(["--stage", "encoder", "--config", "cpu", "--data", womd_path, "--workdir", work,
-                 "--no-progress", "--steps", "1"]) == 2
-  assert "encoder.d_model" in capsys.readouterr().err
-  # Stage 2, both variants, beside the same encoder.
-  assert _train(["--stage", "diffusion", "--steps", "2"] + base) == 0
-  assert _train(["--stage", "diffusion", "--steps", "2", "--no-prior"] + base) == 0
-  summary = json.load(open(os.path.join(work, "diffusion_summary.json")))
-  assert np.isfinite(summary["diffusion"]["val"]["min_ade"])
-  from pcdiff_jax.training import diffusion_stage
-  from pcdiff_jax.training import data as D
-  models, cfg = diffusion_stage.load(work)
-  assert cfg.encoder == CFG.encoder and cfg.diffusion == CFG.diffusion
-  ex, _ = D.load_or_build(womd_path, diffusion_stage.encoder_stage.cache_spec(cfg),
-                          os.path.join(work, "cache"), "val", progress=False)
-  cond = planner.condition(models.encoder, models.stats, jax.tree_util.tree_map(jnp.asarray, ex.feats), cfg)
-  for n in (1, 3):
-    y0 = planner.sample(models.denoiser, cond, cfg, jax.random.key(0), n)
-    states = planner.decode_states(models.stats, cond, y0, cfg)
-    assert states.shape == (1, cfg.features.max_agents, cfg.encoder.horizon, 4)
-    assert np.all(np.isfinite(np.asarray(states)))
-  # Export as a shipped model: parameters only, loadable by the one-call loader.
-  from experiments import export
-  import pcdiff_jax
-  shipped = str(tmp_path / "shipped")
-  assert export.main(["--workdir", work, "--out", shipped]) == 0
-  assert export.main(["--workdir", work, "--out", shipped]) == 2          # never overwrites
-  assert "exists" in capsys.readouterr().err
-  loaded, loaded_cfg = pcdiff_jax.pretrained(path=shipped)
-  assert loaded_cfg == cfg
-  for a, b in zip(jax.tree_util.tree_leaves(loaded), jax.tree_util.tree_leaves(models)):
-    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-  enc, _ = pcdiff_jax.pretrained(path=shipped, stage="encoder")
-  assert jax.tree_util.tree_structure(enc) == jax.tree_util.tree_structure(models.encoder)
-  with pytest.raises(FileNotFoundError, match="no shipped model"):
-    pcdiff_jax.pretrained(path=str(tmp_path / "nothing"))
-  # On-policy fine-tuning (CAT-K-style round) from the shipped folder: the
-  # encoder and the denoiser move, the latent stays, and the result loads as a
-  # model (both stages, so SIMPL-AR takes it too).
-  from experiments import finetune
-  ft = str(tmp_path / "ft")
-  argv = ["--from", shipped, "--data", womd_path, "--workdir", ft, "--cache-dir", os.path.join(work, "cache"),
-          "--scenes", "1", "--steps", "2", "--encoder-steps", "1", "--times", "12", "13", "--max-agents", "8",
-          "--batch-size", "2", "--no-progress"]
-  assert finetune.main(argv) == 0
-  tuned, tuned_cfg = diffusion_stage.load(ft)
-  assert tuned_cfg.diffusion == cfg.diffusion and tuned_cfg.encoder == cfg.encoder
-  for a, b in zip(jax.tree_util.tree_leaves(tuned.stats), jax.tree_util.tree_leaves(models.stats)):
-    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-  changed = lambda x, y: any(not np.array_equal(np.asarray(a), np.asarray(b)) for a, b in
-                             zip(jax.tree_util.tree_leaves(x), jax.tree_util.tree_leaves(y)))
-  assert changed(tuned.denoiser, models.denoiser) and changed(tuned.encoder, models.encoder)
-  enc_ft, _ = pcdiff_jax.pretrained(path=ft, stage="encoder")
-  assert not changed(enc_ft, tuned.encoder)
-  summary = json.load(open(os.path.join(ft, "finetune_summary.json")))
-  assert summary["rounds"][0]["collect"]["examples"] == 2 and summary["rounds"][0]["step"] == 2
-  assert finetune.main(argv) == 0                                         # finished rounds are kept
-  assert finetune.main(argv[:1] + [str(tmp_path / "nothing")] + argv[2:]) == 2
-  assert "no diffusion/" in capsys.readouterr().err
 
 
 def test_train_cli_rejects_bad_input(tmp_path, capsys):

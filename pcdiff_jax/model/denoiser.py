@@ -161,7 +161,8 @@ class Denoiser(nn.Module):
 
 def init(rng: Array, y: Array, s: Array, inputs: DenoiserInputs, config: DenoiserConfig) -> Any:
   """Parameters for one scene's shapes (pass unbatched y (A, d_y) and inputs)."""
-  return Denoiser(config, y.shape[-1]).init(rng, y, s, inputs)
+  # Jitted: an eager init compiles every op on its own.
+  return jax.jit(Denoiser(config, y.shape[-1]).init)(rng, y, s, inputs)
 
 
 def apply(params: Any, y: Array, s: Array, inputs: DenoiserInputs, config: DenoiserConfig,

@@ -360,7 +360,8 @@ def _first(feats: SceneFeatures) -> SceneFeatures:
 
 def init(rng: Array, feats: SceneFeatures, config: EncoderConfig) -> Any:
   """Parameters of the encoder for features of this padded size (batched or not)."""
-  return SceneEncoder(config).init(rng, _first(feats))
+  # Jitted: an eager init compiles every op on its own (tens of seconds on CPU).
+  return jax.jit(SceneEncoder(config).init)(rng, _first(feats))
 
 
 def apply(params: Any, feats: SceneFeatures, config: EncoderConfig,

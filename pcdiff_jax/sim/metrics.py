@@ -117,6 +117,7 @@ class EventCounts:
   start_offroad: Array         # ... off the road at the start step
   became_offroad: Array        # ... on the road at the start, off it later
   offroad_any: Array           # ... off the road at some simulated step
+  offroad_past_log: Array      # became_offroad, but only at steps after its log had ended
 
   def rates(self) -> dict[str, float]:
     """The paper's rates over everything summed (host-side)."""
@@ -128,6 +129,10 @@ class EventCounts:
         "vehicle_collision_rate": total.vehicle_collided / max(total.num_vehicles, 1.0),
         "offroad_rate": total.became_offroad / max(on_road, 1.0),
         "offroad_any_rate": total.offroad_any / max(total.num_vehicles, 1.0),
+        # The share of offroad_rate (same denominator) from agents that left
+        # the road only after their log had ended (e.g. a synthetic route
+        # leaving the map): there the map, not the log, is all a method has.
+        "offroad_past_log_rate": total.offroad_past_log / max(on_road, 1.0),
         "start_offroad_fraction": total.start_offroad / max(total.num_vehicles, 1.0),
         "num_evaluated": total.num_evaluated,
         "num_vehicles": total.num_vehicles,
@@ -175,6 +180,9 @@ def event_counts(sim: Trajectory, log: Trajectory, roadgraph: RoadgraphPoints,
   vehicle = evaluated & is_vehicle
   start_off = off[..., 0]
   off_later = jnp.any(off[..., 1:], axis=-1)
+  last_logged = jnp.max(jnp.where(log.valid, jnp.arange(num_t), -1), axis=-1)         # (..., O)
+  logged = jnp.arange(start_step, num_t) <= last_logged[..., None]                    # (..., O, T')
+  off_while_logged = jnp.any(off[..., 1:] & logged[..., 1:], axis=-1)
 
   count = lambda m: jnp.sum(m, axis=-1).astype(jnp.int32)
   return EventCounts(
@@ -186,4 +194,5 @@ def event_counts(sim: Trajectory, log: Trajectory, roadgraph: RoadgraphPoints,
       start_offroad=count(start_off & vehicle),
       became_offroad=count(off_later & ~start_off & vehicle),
       offroad_any=count(off_later & vehicle),
+      offroad_past_log=count(off_later & ~off_while_logged & ~start_off & vehicle),
   )

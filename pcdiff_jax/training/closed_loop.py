@@ -79,16 +79,23 @@ class OnPolicyConfig:
 
 def _extended_log(state: SimulatorState, steps: Array, dt: float) -> tuple[Array, Array]:
   """Log states (O, K, 4) [x, y, yaw, speed] and validity (O, K) at `steps`
-  (K,), continued past the end of the log at constant speed and heading."""
+  (K,), continued past each object's last valid step at constant speed and
+  heading: past the end of the record, and past an earlier end (a synthetic
+  vehicle's log ends where its route leaves the map; without this, such an
+  agent had no target once its log ended, and the policy planned for it
+  unsupervised: half the off-road events, docs/RESULTS.md "Models v5")."""
   traj = state.log_trajectory
-  last = traj.num_timesteps - 1
+  num_steps = traj.num_timesteps
   states = dynamics.states_from_trajectory(traj)                          # (O, T, 4)
-  at = states[:, jnp.clip(steps, 0, last)]
-  beyond = jnp.maximum(steps - last, 0).astype(jnp.float32) * dt            # (K,) seconds past the end
-  end = states[:, last]                                                      # (O, 4)
-  shift = end[:, None, 3:4] * beyond[None, :, None] * geometry.unit(end[:, 2])[:, None, :]
-  at = at.at[..., :2].add(jnp.where((steps > last)[None, :, None], shift, 0.0))
-  return at, traj.valid[:, jnp.clip(steps, 0, last)]
+  last = jnp.max(jnp.where(traj.valid, jnp.arange(num_steps), -1), axis=-1)   # (O,), -1: never valid
+  end = jnp.take_along_axis(states, jnp.maximum(last, 0)[:, None, None], axis=1)[:, 0]   # (O, 4)
+  past = steps[None, :] > last[:, None]                                      # (O, K)
+  beyond = jnp.maximum(steps[None, :] - last[:, None], 0).astype(jnp.float32) * dt   # (O, K) seconds
+  moved = end[:, None, :].repeat(steps.shape[0], axis=1)
+  moved = moved.at[..., :2].add(end[:, None, 3:4] * beyond[..., None] * geometry.unit(end[:, 2])[:, None, :])
+  at = jnp.where(past[..., None], moved, states[:, jnp.clip(steps, 0, num_steps - 1)])
+  valid = jnp.where(past, (last >= 0)[:, None], traj.valid[:, jnp.clip(steps, 0, num_steps - 1)])
+  return at, valid
 
 
 def on_policy_targets(state: SimulatorState, feats, horizon: int, cfg: OnPolicyConfig,

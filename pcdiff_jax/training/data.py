@@ -20,6 +20,7 @@ drawn from (seed, e), so a resumed run sees exactly the batches it would have.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import logging
@@ -127,7 +128,9 @@ def cache_key(files: Sequence[str], spec: CacheSpec) -> str:
   return h.hexdigest()[:12]
 
 
+@functools.lru_cache(maxsize=8)
 def _example_fn(spec: CacheSpec):
+  """One jitted builder per spec: the train and val sets share its compile."""
   def one(state):
     exs = [example_at(state, s, spec.features, spec.horizon) for s in spec.current_steps]
     return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *exs)      # (S, ...)

@@ -276,9 +276,9 @@ def fit(state: TrainState, train_step: Callable, batch_at: Callable[[int], Any],
   from tqdm.auto import tqdm
   ckpt = Checkpointer(workdir, cfg.keep_checkpoints)
   state = ckpt.restore_or_keep(state, config, compare)
-  # Host numpy leaves (restored or frozen) -> device arrays, so the first
-  # and later steps see the same argument types and compile once.
-  state = jax.tree_util.tree_map(jnp.asarray, state)
+  # Host numpy leaves (restored or frozen) -> arrays committed to one device,
+  # like the step's outputs, so the first and later steps compile once.
+  state = jax.device_put(state, jax.devices()[0])
   start = int(state.step)
   if start:
     log.info("resumed %s from step %d (%s)", desc, start, ckpt.directory)

@@ -1,0 +1,164 @@
+"""Everything that needs a model trained through the CLI, on one tiny model
+trained once (the fixture below): the train CLI (resume, logs, workdir guard),
+both stages and the export, an on-policy fine-tuning round, and the main job
+(`make demo`) end to end with its diagnostics."""
+from __future__ import annotations
+
+import json
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from experiments import demo
+from pcdiff_jax.config import get_config
+from pcdiff_jax.model import planner
+
+CFG = get_config("tiny")
+
+
+def _train(argv):
+  from experiments import train
+  return train.main(argv)
+
+
+@pytest.fixture(scope="module")
+def tiny_trained(tmp_path_factory, womd_path):
+  """Both stages of the tiny preset trained through the CLI on the real record,
+  once per session: the encoder for 2 steps, then `--stage all --steps 4`
+  (which resumes the encoder at 2, as `make demo --train` calls it), the
+  no-prior variant beside it, and the export as a shipped folder.
+
+  Module-scoped: `make test` distributes whole files (`--dist loadfile`),
+  so one worker trains it once for every test here.
+  Returns {"work", "shipped", "base" (the common CLI args), "codes"}.
+  """
+  from experiments import export, train
+  root = tmp_path_factory.mktemp("tiny_trained")
+  work, shipped = str(root / "w"), str(root / "shipped")
+  base = ["--config", "tiny", "--data", womd_path, "--val-data", womd_path, "--workdir", work,
+          "--no-progress"]
+  codes = {"encoder-2": train.main(["--stage", "encoder", "--steps", "2"] + base),
+           "all-4": train.main(["--stage", "all", "--steps", "4"] + base),
+           "no-prior-2": train.main(["--stage", "diffusion", "--steps", "2", "--no-prior"] + base),
+           "export": export.main(["--workdir", work, "--out", shipped])}
+  return {"work": work, "shipped": shipped, "base": base, "codes": codes}
+
+
+def test_train_cli_resumes_logs_and_guards_its_workdir(tiny_trained, womd_path, capsys):
+  work = tiny_trained["work"]
+  assert tiny_trained["codes"] == {"encoder-2": 0, "all-4": 0, "no-prior-2": 0, "export": 0}
+  lines = [json.loads(l) for l in open(os.path.join(work, "encoder", "metrics.jsonl"))]
+  assert [d["step"] for d in lines if "train/loss" in d] == [1, 2, 3, 4]   # resumed at 2: no step repeated
+  assert any("val/min_fde" in d for d in lines)
+  # TensorBoard event files hold the same scalars, tagged for its scalars plugin.
+  import glob
+
+  import tensorflow as tf
+  from tensorflow.core.util import event_pb2
+  tags = set()
+  for f in glob.glob(os.path.join(work, "encoder", "tb", "*")):
+    for rec in tf.data.TFRecordDataset(f):
+      for v in event_pb2.Event.FromString(rec.numpy()).summary.value:
+        tags.add((v.tag, v.metadata.plugin_data.plugin_name))
+  assert ("train/loss", "scalars") in tags and ("val/min_fde", "scalars") in tags
+  # Another model in the same workdir is refused with the differing fields named.
+  assert _train(["--stage", "encoder", "--config", "cpu", "--data", womd_path, "--workdir", work,
+                 "--no-progress", "--steps", "1"]) == 2
+  assert "encoder.d_model" in capsys.readouterr().err
+
+
+def test_both_stages_sample_and_export_as_a_shipped_model(tiny_trained, womd_path, tmp_path, capsys):
+  work, shipped = tiny_trained["work"], tiny_trained["shipped"]
+  # Stage 2, both variants, beside the same encoder.
+  summary = json.load(open(os.path.join(work, "all_summary.json")))
+  assert summary["encoder"]["step"] == 4 and summary["diffusion"]["step"] == 4
+  assert np.isfinite(summary["diffusion"]["val"]["min_ade"])
+  no_prior = json.load(open(os.path.join(work, "diffusion_summary.json")))
+  assert no_prior["diffusion"]["step"] == 2 and np.isfinite(no_prior["diffusion"]["val"]["min_ade"])
+  from pcdiff_jax.training import diffusion_stage
+  from pcdiff_jax.training import data as D
+  models, cfg = diffusion_stage.load(work)
+  assert cfg.encoder == CFG.encoder and cfg.diffusion == CFG.diffusion
+  ex, _ = D.load_or_build(womd_path, diffusion_stage.encoder_stage.cache_spec(cfg),
+                          os.path.join(work, "cache"), "val", progress=False)
+  cond = planner.condition(models.encoder, models.stats, jax.tree_util.tree_map(jnp.asarray, ex.feats), cfg)
+  for n in (1, 3):
+    y0 = planner.sample(models.denoiser, cond, cfg, jax.random.key(0), n)
+    states = planner.decode_states(models.stats, cond, y0, cfg)
+    assert states.shape == (1, cfg.features.max_agents, cfg.encoder.horizon, 4)
+    assert np.all(np.isfinite(np.asarray(states)))
+  # The export: parameters only, loadable by the one-call loader.
+  from experiments import export
+  import pcdiff_jax
+  assert export.main(["--workdir", work, "--out", shipped]) == 2          # never overwrites
+  assert "exists" in capsys.readouterr().err
+  loaded, loaded_cfg = pcdiff_jax.pretrained(path=shipped)
+  assert loaded_cfg == cfg
+  for a, b in zip(jax.tree_util.tree_leaves(loaded), jax.tree_util.tree_leaves(models)):
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+  enc, _ = pcdiff_jax.pretrained(path=shipped, stage="encoder")
+  assert jax.tree_util.tree_structure(enc) == jax.tree_util.tree_structure(models.encoder)
+  with pytest.raises(FileNotFoundError, match="no shipped model"):
+    pcdiff_jax.pretrained(path=str(tmp_path / "nothing"))
+
+
+def test_finetune_round_moves_both_stages_and_keeps_the_latent(tiny_trained, womd_path, tmp_path, capsys):
+  """On-policy fine-tuning (a CAT-K-style round) from the shipped folder: the
+  encoder and the denoiser move, the latent stays, and the result loads as a
+  model (both stages, so SIMPL-AR takes it too)."""
+  import pcdiff_jax
+  from experiments import finetune
+  from pcdiff_jax.training import diffusion_stage
+  models, cfg = pcdiff_jax.pretrained(path=tiny_trained["shipped"])
+  ft = str(tmp_path / "ft")
+  argv = ["--from", tiny_trained["shipped"], "--data", womd_path, "--workdir", ft,
+          "--cache-dir", os.path.join(tiny_trained["work"], "cache"),
+          "--scenes", "1", "--steps", "2", "--encoder-steps", "1", "--times", "12", "13", "--max-agents", "8",
+          "--batch-size", "2", "--no-progress"]
+  assert finetune.main(argv) == 0
+  tuned, tuned_cfg = diffusion_stage.load(ft)
+  assert tuned_cfg.diffusion == cfg.diffusion and tuned_cfg.encoder == cfg.encoder
+  for a, b in zip(jax.tree_util.tree_leaves(tuned.stats), jax.tree_util.tree_leaves(models.stats)):
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+  changed = lambda x, y: any(not np.array_equal(np.asarray(a), np.asarray(b)) for a, b in
+                             zip(jax.tree_util.tree_leaves(x), jax.tree_util.tree_leaves(y)))
+  assert changed(tuned.denoiser, models.denoiser) and changed(tuned.encoder, models.encoder)
+  enc_ft, _ = pcdiff_jax.pretrained(path=ft, stage="encoder")
+  assert not changed(enc_ft, tuned.encoder)
+  summary = json.load(open(os.path.join(ft, "finetune_summary.json")))
+  assert summary["rounds"][0]["collect"]["examples"] == 2 and summary["rounds"][0]["step"] == 2
+  assert finetune.main(argv) == 0                                         # finished rounds are kept
+  assert finetune.main(argv[:1] + [str(tmp_path / "nothing")] + argv[2:]) == 2
+  assert "no diffusion/" in capsys.readouterr().err
+
+
+def test_demo_pipeline_runs_end_to_end(tiny_trained, tmp_path):
+  out = str(tmp_path / "demo")
+  model = tiny_trained["shipped"]                   # a shipped folder, as `make demo` loads
+  code = demo.main(["--out", out, "--checkpoint", model, "--num-val", "2", "--methods", "pcdiff", "cv",
+                    "--batch-size", "2", "--real", "/nonexistent", "--no-progress"])
+  assert code == 0
+  for method in ("pcdiff", "cv"):
+    with open(os.path.join(out, "eval", method, "metrics.json")) as f:
+      summary = json.load(f)
+    assert summary["num_scenarios"] == 2 and not summary["skipped"]
+    assert os.listdir(os.path.join(out, "eval", method, "gifs"))
+  with open(os.path.join(out, "table.md")) as f:
+    text = f.read()
+  assert "ours (prior, 5 DDIM steps" in text and "constant velocity" in text
+  # The closed-loop diagnostics run on the same model.
+  from experiments import diagnose
+  val = os.path.join(out, "data", "val-00000-of-00001.tfrecord")
+  common = ["--checkpoint", model, "--scenarios", val, "--num-scenes", "1"]
+  diagnose.main(common + ["--out", str(tmp_path / "first.json"), "first-action"])
+  diagnose.main(common + ["--out", str(tmp_path / "replay.json"), "replay", "--plans", "log,top1-latent"])
+  with open(tmp_path / "first.json") as f:
+    rows = json.load(f)["rows"]
+  assert set(rows) == {"log", "log_latent", "top1", "prior_centre", "sample"}
+  with open(tmp_path / "replay.json") as f:
+    replay = json.load(f)["rows"]
+  assert replay["log"]["min_ade"] < 0.5                 # the log's own actions reproduce the log
+  assert replay["top1-latent"]["min_ade"] > replay["log"]["min_ade"]
