@@ -26,7 +26,7 @@ data: install   # the built-in dataset (docs/DATA.md): 2000 train + 200 val scen
 	$(PY) -m experiments.make_data --out data/synth --num-train 2000 --num-val 200 --seed 0
 
 TRAIN_DIR ?= runs/train
-FINETUNE_ARGS ?= --rounds 2 --scenes 300 --steps 600
+FINETUNE_ARGS ?= --rounds 7 --scenes 300 --steps 600
 # The shipped model's recipe from scratch (checkpoints/*/MODEL_CARD.md): 10k scenes, both stages,
 # on-policy fine-tuning rounds, export. Each command resumes where it stopped when re-run.
 train: install

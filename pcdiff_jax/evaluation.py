@@ -84,7 +84,7 @@ class EvalConfig:
   warm_start: bool = True
   warm_step: int = 30
   warm_ddim_steps: int = 2
-  temporal_ensemble: tuple[float, float] = (0.0, 0.0)
+  temporal_ensemble: tuple[float, float] = (0.3, 0.0)
   simpl_ar_sample: bool = False
 
   @property
@@ -206,7 +206,9 @@ def _markdown(summary: dict) -> str:
   lines += [f"Mean ± std over {summary['seeds']} seed(s), {summary['num_rollouts']} rollout(s) per "
             f"scenario and seed (minADE: the best of them). Vehicle-vehicle collision rate "
             f"{100 * r['vehicle_collision_rate']:.2f}%; vehicles starting off-road "
-            f"{100 * r['start_offroad_fraction']:.2f}%. Evaluated agents per seed: "
+            f"{100 * r['start_offroad_fraction']:.2f}%; of the off-road rate, "
+            f"{100 * r.get('offroad_past_log_rate', 0.0):.2f} points are vehicles that left the road only "
+            f"after their log had ended. Evaluated agents per seed: "
             f"{int(r['num_evaluated'])} (vehicles {int(r['num_vehicles'])}); skipped scenarios: "
             f"{len(summary['skipped'])}. Controlled agents lost mid-rollout: {summary['lost_agents']} of "
             f"{summary['controlled_agents']} (all seeds); objects following their log: "
