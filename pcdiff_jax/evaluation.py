@@ -179,7 +179,7 @@ def pursuer_at_start(final_state, cfg: EvalConfig) -> jax.Array:
       at_start, metrics_lib.evaluated_agents(final_state, start, cfg.metrics.max_reactive_agents))
 
 
-def _pad_batch(state, size: int):
+def pad_batch(state, size: int):
   """Repeats the last scenario so every batch has the same size (no recompiles)."""
   n = state.shape[0]
   if n == size:
@@ -207,7 +207,7 @@ def _markdown(summary: dict) -> str:
             f"scenario and seed (minADE: the best of them). Vehicle-vehicle collision rate "
             f"{100 * r['vehicle_collision_rate']:.2f}%; vehicles starting off-road "
             f"{100 * r['start_offroad_fraction']:.2f}%; of the off-road rate, "
-            f"{100 * r.get('offroad_past_log_rate', 0.0):.2f} points are vehicles that left the road only "
+            f"{100 * r['offroad_past_log_rate']:.2f} points are vehicles that left the road only "
             f"after their log had ended. Evaluated agents per seed: "
             f"{int(r['num_evaluated'])} (vehicles {int(r['num_vehicles'])}); skipped scenarios: "
             f"{len(summary['skipped'])}. Controlled agents lost mid-rollout: {summary['lost_agents']} of "
@@ -266,7 +266,7 @@ def evaluate(scenarios: Sequence[str] | str, out_dir: str, cfg: EvalConfig,
         rngs = jax.random.split(key, call_size)
         try:
           tiled = jax.tree_util.tree_map(lambda a: jnp.repeat(a, n_roll, axis=0),
-                                         _pad_batch(state, cfg.batch_size))
+                                         pad_batch(state, cfg.batch_size))
           t0 = time.perf_counter()
           final = jax.block_until_ready(run(tiled, rngs, params))
           elapsed = time.perf_counter() - t0

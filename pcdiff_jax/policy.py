@@ -250,10 +250,10 @@ def reactive_set(state: SimulatorState, cfg: Config) -> Array:
 
 def ensemble_plans(previous: Array, previous_valid: Array, executed: Array, plan: Array,
                    plan_valid: Array, weight) -> Array:
-  """(O, T, 2) weight * previous + (1 - weight) * plan (weight () or one per
-  action channel (2,)) over the steps both
-  cover: `previous` advanced by the `executed` actions (a traced int); the
-  new plan alone where the previous one has ended or an agent had none."""
+  """(O, T, 2) weight * previous + (1 - weight) * plan over the steps both
+  cover, with `previous` advanced by the `executed` actions (a traced int);
+  the new plan alone where the previous one has ended or an agent had none.
+  weight: () or one per action channel (2,)."""
   horizon = plan.shape[1]
   both = ((jnp.arange(horizon) < horizon - executed)[None, :, None]
           & (previous_valid & plan_valid)[:, None, None])
@@ -280,21 +280,19 @@ def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
 
   def replan(models, state, ps: PlanState, rng):
     noise = ps.noise if policy.consistent_noise else None
-    cold = lambda: plan_actions(models, state, cfg, policy, rng, ps.adversary, noise, ps.road,
-                                controlled=ps.controlled)
-    if not policy.warm_start:
-      return cold()
-    warm = WarmStart(actions=advance_plan(ps.plan, ps.age), has=ps.plan_valid & ps.controlled)
-    return plan_actions(models, state, cfg, policy, rng, ps.adversary, noise, ps.road,
-                        controlled=ps.controlled, warm=warm)
+    warm = None
+    if policy.warm_start:
+      warm = WarmStart(actions=advance_plan(ps.plan, ps.age), has=ps.plan_valid & ps.controlled)
+    plan, plan_valid, path = plan_actions(models, state, cfg, policy, rng, ps.adversary, noise, ps.road,
+                                          controlled=ps.controlled, warm=warm)
+    if any(policy.temporal_ensemble):
+      plan = ensemble_plans(ps.plan, ps.plan_valid, ps.age, plan, plan_valid, policy.temporal_ensemble)
+    return plan, plan_valid, path
 
   def select_action(models, state, ps: PlanState, rng):
     due = ps.age >= policy.replan_every
     plan, plan_valid, path = jax.lax.cond(
         due, lambda: replan(models, state, ps, rng), lambda: (ps.plan, ps.plan_valid, ps.path))
-    if any(policy.temporal_ensemble):
-      ensembled = ensemble_plans(ps.plan, ps.plan_valid, ps.age, plan, plan_valid, policy.temporal_ensemble)
-      plan = jnp.where(due, ensembled, plan)
     age = jnp.where(due, 0, ps.age)
     if policy.execute == "track":
       now = _track(state, path, age, policy.track_steps, cfg)

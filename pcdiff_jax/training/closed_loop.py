@@ -193,7 +193,7 @@ def collect(models: Models, model_cfg: Config, policy_cfg, paths: Sequence[str],
     keep = slice(max(first - (seen - n), 0), n)
     try:
       rngs = jax.random.split(jax.random.fold_in(jax.random.key(seed), index), batch_size)
-      padded = evaluation._pad_batch(state, batch_size)
+      padded = evaluation.pad_batch(state, batch_size)
       out = jax.device_get(fn(padded, rngs, models))
     except Exception as err:  # a bad scenario must not end a long job
       log.warning("skipping on-policy batch %s (%s): %s", index, meta.scenario_id, err)
