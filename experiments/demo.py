@@ -27,7 +27,7 @@ import os
 import sys
 import time
 
-from experiments import make_data, rollout, train
+from experiments import _args, make_data, rollout, train
 from pcdiff_jax import shipped
 from pcdiff_jax.config import get_config
 
@@ -39,7 +39,7 @@ LABELS = {"pcdiff": "ours (prior, 5 DDIM steps, then warm-started)", "simpl-ar":
 def parse_args(argv=None) -> argparse.Namespace:
   p = argparse.ArgumentParser(prog="python -m experiments.demo", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
-  p.add_argument("--out", default="runs/demo", help="output folder")
+  p.add_argument("--out", default="runs/demo", type=_args.output_dir, help="output folder")
   p.add_argument("--checkpoint", default=None,
                  help="trained model folder (default: the shipped model, checkpoints/" + shipped.DEFAULT_NAME + ")")
   p.add_argument("--train", action="store_true",

@@ -30,6 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from experiments import _args
 from pcdiff_jax import evaluation, metrics as metrics_lib, policy
 from pcdiff_jax.data import womd
 from pcdiff_jax.model import encoder, features as features_lib, latent, planner
@@ -193,7 +194,7 @@ def main(argv=None) -> None:
   p.add_argument("--scenarios", required=True, help="TFRecord of scenarios")
   p.add_argument("--num-scenes", type=int, default=6)
   p.add_argument("--seed", type=int, default=0)
-  p.add_argument("--out", default=None, help="write the rows as JSON here")
+  p.add_argument("--out", default=None, type=_args.output_file, help="write the rows as JSON here")
   sub = p.add_subparsers(dest="section", required=True)
   r = sub.add_parser("replay", help="open-loop execution of one plan per agent")
   r.add_argument("--plans", default=",".join(PLANS))

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from experiments import _args
 from pcdiff_jax import shipped
 
 
@@ -17,7 +18,7 @@ def main(argv=None) -> int:
   p = argparse.ArgumentParser(prog="python -m experiments.export", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
   p.add_argument("--workdir", required=True, help="training workdir with encoder/ and diffusion/")
-  p.add_argument("--out", required=True, help="new folder for the exported model")
+  p.add_argument("--out", required=True, type=_args.output_dir, help="new folder for the exported model")
   args = p.parse_args(argv)
   try:
     steps = shipped.export(args.workdir, args.out)

@@ -27,6 +27,7 @@ import time
 import jax
 import numpy as np
 
+from experiments import _args
 from pcdiff_jax.data import womd
 
 
@@ -36,10 +37,13 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--from", dest="source", required=True,
                  help="the model to start from: a training workdir or a shipped model folder")
   p.add_argument("--data", required=True, nargs="+", help="training TFRecord file(s) or glob(s)")
-  p.add_argument("--workdir", required=True)
+  p.add_argument("--workdir", required=True, type=_args.output_dir)
   p.add_argument("--cache-dir", default=None, help="logged-example cache (default WORKDIR/cache)")
   p.add_argument("--rounds", type=int, default=1)
   p.add_argument("--scenes", type=int, default=400, help="training scenes rolled out per round")
+  p.add_argument("--first-scene", type=int, default=0,
+                 help="round r rolls out training scenes FIRST + r * SCENES on (skip the scenes "
+                      "that the rounds of the --from model used)")
   p.add_argument("--steps", type=int, default=600, help="optimizer steps per round")
   p.add_argument("--learning-rate", type=float, default=2e-4)
   p.add_argument("--encoder-steps", type=int, default=0,
@@ -51,6 +55,9 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--times", type=int, nargs="+", default=[20, 30, 40, 50],
                  help="visited steps cut into examples (the rollout starts at 10)")
   p.add_argument("--max-offset", type=float, default=8.0, help="m; farther agents are not trained on")
+  p.add_argument("--straight-tail", action="store_true",
+                 help="continue a log past its end straight at constant speed (rounds 0-6 of v5), "
+                      "not along the lane centres")
   p.add_argument("--rollout-batch", type=int, default=4, help="scenes per jitted rollout call")
   p.add_argument("--max-agents", type=int, default=64, help="reactive agents the policy controls")
   p.add_argument("--seed", type=int, default=0)
@@ -65,6 +72,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.error("--mix must be in (0, 1)")
   if args.learning_rate <= 0 or args.encoder_learning_rate <= 0:
     p.error("learning rates must be > 0")
+  if args.first_scene < 0:
+    p.error("--first-scene must be >= 0")
   if args.encoder_steps < 0:
     p.error("--encoder-steps must be >= 0")
   return args
@@ -100,7 +109,8 @@ def main(argv=None) -> int:
     models, model_cfg = diffusion_stage.load(args.source)
     metrics_cfg = dataclasses.replace(model_cfg.metrics, max_reactive_agents=args.max_agents)
     run_cfg = evaluation.with_agent_cap(model_cfg, metrics_cfg)
-    ocfg = closed_loop.OnPolicyConfig(times=tuple(args.times), max_offset=args.max_offset, mix=args.mix)
+    ocfg = closed_loop.OnPolicyConfig(times=tuple(args.times), max_offset=args.max_offset, mix=args.mix,
+                                      lane_tail=not args.straight_tail)
     tc = model_cfg.diffusion_train
     tc = dataclasses.replace(tc, total_steps=args.steps, learning_rate=args.learning_rate,
                              warmup_steps=min(50, args.steps // 10), eval_every=args.steps,
@@ -121,7 +131,7 @@ def main(argv=None) -> int:
         on_policy, info = data_lib.read_examples(path)
       else:
         on_policy, info = closed_loop.collect(
-            models, run_cfg, policy.PolicyConfig(), files, ocfg, first=r * args.scenes,
+            models, run_cfg, policy.PolicyConfig(), files, ocfg, first=args.first_scene + r * args.scenes,
             count=args.scenes, batch_size=args.rollout_batch, seed=args.seed + r,
             progress=not args.no_progress)
         info["minutes"] = (time.time() - t0) / 60

@@ -21,6 +21,8 @@ import sys
 import jax
 import numpy as np
 
+from experiments import _args
+
 MODES = ("none", "objective", "adversarial")
 TITLES = {"none": "nominal", "objective": "objective guidance", "adversarial": "adversarial (IBR)"}
 
@@ -40,7 +42,7 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--w-pursue", type=float, default=30.0)
   p.add_argument("--eta", type=float, default=0.07)
   p.add_argument("--seed", type=int, default=0)
-  p.add_argument("--out", required=True)
+  p.add_argument("--out", required=True, type=_args.output_dir)
   args = p.parse_args(argv)
   if min(args.num_scenes, args.ddim_steps, args.replan_every) < 1:
     p.error("--num-scenes, --ddim-steps and --replan-every must be >= 1")

@@ -18,7 +18,7 @@ import dataclasses
 import os
 import sys
 
-from experiments import _report
+from experiments import _args, _report
 
 
 def parse_args(argv=None):
@@ -28,7 +28,7 @@ def parse_args(argv=None):
   p.add_argument("--data", required=True, nargs="+")
   p.add_argument("--val-data", required=True, nargs="+")
   p.add_argument("--dims", type=int, nargs="+", default=[8, 16, 32, 64])
-  p.add_argument("--out", required=True)
+  p.add_argument("--out", required=True, type=_args.output_dir)
   return p.parse_args(argv)
 
 

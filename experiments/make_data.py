@@ -14,6 +14,8 @@ import json
 import os
 import sys
 
+from experiments import _args
+
 REAL_SAMPLE = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "womd",
                            "motion_data_one_example.tfrecord")
 
@@ -21,7 +23,7 @@ REAL_SAMPLE = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "dat
 def parse_args(argv=None) -> argparse.Namespace:
   p = argparse.ArgumentParser(prog="python -m experiments.make_data", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
-  p.add_argument("--out", help="output folder for the shards")
+  p.add_argument("--out", type=_args.output_dir, help="output folder for the shards")
   p.add_argument("--num-train", type=int, default=1000)
   p.add_argument("--num-val", type=int, default=200)
   p.add_argument("--seed", type=int, default=0)
@@ -74,7 +76,7 @@ def _generate(args) -> int:
 
 
 def _report(args) -> int:
-  from pcdiff_jax.data.synthetic.report import write_report
+  from experiments.realism_report import write_report
   report = write_report(args.stats, args.real, num_scenes=args.num_scenes,
                         num_metric_scenes=args.metric_scenes)
   with open(os.path.join(args.stats, "realism.md")) as f:

@@ -18,7 +18,7 @@ import logging
 import os
 import sys
 
-from experiments import _report
+from experiments import _args, _report
 import time
 
 
@@ -32,7 +32,7 @@ def parse_args(argv=None):
   p.add_argument("--eta", type=float, default=0.0)
   p.add_argument("--batch-size", type=int, default=8)
   p.add_argument("--limit", type=int, default=None, help="first N scenes only")
-  p.add_argument("--out", required=True)
+  p.add_argument("--out", required=True, type=_args.output_dir)
   args = p.parse_args(argv)
   if min(args.ddim_steps) < 1 or args.samples < 1:
     p.error("--ddim-steps and --samples must be >= 1")

@@ -13,6 +13,7 @@ import argparse
 import logging
 import sys
 
+from experiments import _args
 from pcdiff_jax import evaluation
 from pcdiff_jax.config import MetricsConfig
 from pcdiff_jax.model.guidance import MODES as GUIDANCE_MODES
@@ -53,7 +54,7 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--num-rollouts", type=int, default=1,
                  help="stochastic rollouts per scenario (minADE takes the best)")
   p.add_argument("--seeds", type=int, default=1, help="repeat everything with this many seeds (mean, std)")
-  p.add_argument("--out", required=True, help="output folder")
+  p.add_argument("--out", required=True, type=_args.output_dir, help="output folder")
   p.add_argument("--max-scenarios", type=int, default=None, help="only the first N scenarios")
   p.add_argument("--num-steps", type=int, default=80)
   p.add_argument("--max-agents", type=int, default=64, help="reactive agents nearest the SDC")

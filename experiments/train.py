@@ -17,6 +17,7 @@ import logging
 import os
 import sys
 
+from experiments import _args
 from pcdiff_jax import config as config_lib
 from pcdiff_jax.data import womd
 
@@ -31,7 +32,7 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--data", required=True, nargs="+", help="training TFRecord file(s) or glob(s)")
   p.add_argument("--val-data", nargs="+", default=None,
                  help="validation TFRecords (default: --data with 'train' -> 'val')")
-  p.add_argument("--workdir", required=True)
+  p.add_argument("--workdir", required=True, type=_args.output_dir)
   p.add_argument("--cache-dir", default=None,
                  help="where example caches are kept (default WORKDIR/cache); share it between runs")
   p.add_argument("--steps", type=int, default=None, help="override total optimizer steps")

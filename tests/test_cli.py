@@ -41,3 +41,32 @@ def test_rollout_cli_bad_arguments(tmp_path, capsys):
   assert "--num-steps must be >= 1" in capsys.readouterr().err
   assert rollout.main(["--scenarios", str(tmp_path / "missing.tfrecord"), "--out", str(tmp_path / "o")]) == 2
   assert "missing.tfrecord" in capsys.readouterr().err
+
+
+CLIS = ("bench", "demo", "diagnose", "export", "finetune", "guidance_figure", "latent_report", "make_data",
+        "open_loop", "rollout", "train")
+# Each CLI's output option, given a path that cannot be written as asked.
+BAD_OUTPUTS = {"demo": ("--out", "file"), "diagnose": ("--out", "folder"), "export": ("--out", "file"),
+               "finetune": ("--workdir", "file"), "guidance_figure": ("--out", "file"),
+               "latent_report": ("--out", "file"), "make_data": ("--out", "below-file"),
+               "open_loop": ("--out", "file"), "rollout": ("--out", "file"), "train": ("--workdir", "file")}
+
+
+@pytest.mark.parametrize("name", CLIS)
+def test_every_cli_has_help_and_rejects_a_bad_output_path(name, tmp_path, capsys):
+  import importlib
+  cli = importlib.import_module(f"experiments.{name}")
+  with pytest.raises(SystemExit) as err:
+    cli.main(["--help"])
+  assert err.value.code == 0 and "usage" in capsys.readouterr().out
+  if name not in BAD_OUTPUTS:
+    return
+  option, kind = BAD_OUTPUTS[name]
+  a_file = tmp_path / "results.json"
+  a_file.write_text("{}")
+  path = {"file": a_file, "folder": tmp_path, "below-file": a_file / "sub"}[kind]
+  with pytest.raises(SystemExit) as err:
+    cli.main([option, str(path)])
+  message = capsys.readouterr().err
+  assert err.value.code == 2 and str(path) in message and "Traceback" not in message
+  assert a_file.read_text() == "{}"   # nothing already written is touched

@@ -107,3 +107,44 @@ def test_mixed_batches_hold_the_asked_share_of_on_policy_examples():
   assert logged["v"].shape[0] == 6 and visited["v"].shape[0] == 2 and np.all(visited["v"] >= 100)
   again = closed_loop.mixed_batch_at(ex, on, 3, 8, 0.25, 0)
   np.testing.assert_array_equal(again[1]["v"], visited["v"])
+
+
+def _with_left_curve(state, start=(32.0, 2.0), radius=60.0):
+  """state with its lane centre replaced by a left-bending arc that starts at
+  `start` heading +x (the straight lane before it kept up to there)."""
+  rg = state.roadgraph_points
+  lane = np.asarray(rg.types) == 2
+  x0, y0 = start
+  s = np.linspace(0.0, 120.0, int(lane.sum()))
+  arc = np.stack([x0 + radius * np.sin(s / radius), y0 + radius * (1 - np.cos(s / radius))], -1)
+  heading = s / radius
+  f = lambda a: jnp.asarray(a, jnp.float32)
+  return state.replace(roadgraph_points=rg.replace(
+      x=rg.x.at[lane].set(f(arc[:, 0])), y=rg.y.at[lane].set(f(arc[:, 1])),
+      dir_x=rg.dir_x.at[lane].set(f(np.cos(heading))), dir_y=rg.dir_y.at[lane].set(f(np.sin(heading))))), arc
+
+
+def test_a_log_that_ends_early_is_continued_along_its_lane():
+  """Object 1's log ends at step 40 where its lane starts a left curve: the
+  continuation follows the curve (a straight tail would leave it by metres);
+  an object with no lane in reach goes on straight."""
+  state, arc = _with_left_curve(_drifted(50, (0.0, 0.0), 0.0)[0])
+  log = state.log_trajectory
+  state = state.replace(log_trajectory=log.replace(valid=log.valid.at[1, 41:].set(False)))
+  tail = np.asarray(jax.jit(lambda s: closed_loop.lane_continuation(s, 40, DT))(state))   # (O, 40, 4)
+  gap = np.min(np.linalg.norm(tail[1, :, None, :2] - arc[None], axis=-1), axis=-1)
+  assert gap.max() < 0.3, gap
+  assert tail[1, -1, 2] > 0.4                                         # turned with the lane
+  np.testing.assert_allclose(tail[1, :, 3], 8.0, atol=1e-5)          # at its last speed
+  # Object 2 is parked (speed 0): it stays where its log ended.
+  np.testing.assert_allclose(tail[2, :, :2], np.repeat(tail[2, :1, :2], 40, 0), atol=1e-5)
+  # Targets at step 50, past the end of the log, re-join the continuation
+  # (0.5 m beside the straight-driving simulated agent) within 3.3 s and follow it.
+  tail = jax.jit(lambda s: closed_loop.lane_continuation(s, 50 + T, DT))(state)
+  feats = _features(state)
+  got = closed_loop.on_policy_targets(state, feats, T, closed_loop.OnPolicyConfig(), DT, tail)
+  a = _slot(feats, 1)
+  sim = state.sim_trajectory
+  world = geometry.from_local(got.future_xy[a], jnp.stack([sim.x[1, 50], sim.y[1, 50]]), sim.yaw[1, 50])
+  gap = np.min(np.linalg.norm(np.asarray(world)[35:, None] - arc[None], axis=-1), axis=-1)
+  assert bool(got.future_valid[a].all()) and gap.max() < 0.3, gap

@@ -147,7 +147,7 @@ def test_motion_is_smooth_and_collision_free(scenes):
 
 def test_project_metrics_on_logs(scenes):
   """The project's own collision / off-road metrics on log replay."""
-  from pcdiff_jax.data.synthetic.report import log_event_rates
+  from experiments.realism_report import log_event_rates
   states = [group[0].state for group in scenes.values()]
   rates = log_event_rates(states, batch_size=len(states))
   assert rates["collision_rate"] == 0 and rates["offroad_rate"] == 0, rates

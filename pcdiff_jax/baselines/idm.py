@@ -101,19 +101,29 @@ def idm_acceleration(speed: Array, gap: Array, lead_speed: Array, cfg: IDMConfig
   return jnp.clip(cfg.max_accel * (free - interaction), -cfg.max_brake, cfg.max_accel)
 
 
-def _pursuit_yaw_rate(state: SimulatorState, lanes: LaneSamples, cfg: IDMConfig) -> Array:
-  cur = state.current_sim_trajectory
-  xy, yaw, speed = cur.xy[:, 0], cur.yaw[:, 0], cur.speed[:, 0]
+def pursuit_yaw_rate(xy: Array, yaw: Array, speed: Array, lanes: LaneSamples, lookahead: Array,
+                     min_ahead: float = -jnp.inf) -> tuple[Array, Array]:
+  """Pure pursuit of the lane-centre sample nearest a probe `lookahead` (m)
+  ahead of each pose xy (N, 2), yaw, speed (N,), among samples within 45
+  degrees of the heading (and at least `min_ahead` m ahead of the pose):
+  (yaw rate (N,), whether a sample was found (N,); 0 where none)."""
   aligned = jnp.sum(lanes.dir[None] * geometry.unit(yaw)[:, None], -1) > jnp.cos(jnp.pi / 4)
-  probe = xy + cfg.lookahead * geometry.unit(yaw)                           # (O, 2)
-  d2 = jnp.sum((lanes.xy[None] - probe[:, None]) ** 2, -1)                  # (O, P)
-  d2 = jnp.where(lanes.valid[None] & aligned, d2, jnp.inf)
+  local = geometry.to_local(lanes.xy[None], xy[:, None], yaw[:, None])    # (N, P, 2)
+  ahead = jnp.broadcast_to(jnp.asarray(lookahead, local.dtype), yaw.shape)
+  probe = jnp.stack([ahead, jnp.zeros_like(ahead)], -1)                    # (N, 2), local
+  d2 = jnp.sum((local - probe[:, None]) ** 2, -1)                           # (N, P)
+  d2 = jnp.where(lanes.valid[None] & aligned & (local[..., 0] >= min_ahead), d2, jnp.inf)
   k = jnp.argmin(d2, axis=1)
   found = jnp.isfinite(jnp.take_along_axis(d2, k[:, None], 1)[:, 0])
-  target = geometry.to_local(lanes.xy[k], xy, yaw)                          # (O, 2)
-  dist = jnp.sqrt(jnp.sum(target ** 2, -1) + 1e-6)
-  curvature = 2.0 * target[:, 1] / (dist ** 2)                               # 2 sin(alpha) / d
-  return jnp.where(found, speed * curvature, 0.0)
+  target = jnp.take_along_axis(local, k[:, None, None], 1)[:, 0]            # (N, 2)
+  dist2 = jnp.sum(target ** 2, -1) + 1e-6
+  curvature = 2.0 * target[:, 1] / dist2                                    # 2 sin(alpha) / d
+  return jnp.where(found, speed * curvature, 0.0), found
+
+
+def _pursuit_yaw_rate(state: SimulatorState, lanes: LaneSamples, cfg: IDMConfig) -> Array:
+  cur = state.current_sim_trajectory
+  return pursuit_yaw_rate(cur.xy[:, 0], cur.yaw[:, 0], cur.speed[:, 0], lanes, cfg.lookahead)[0]
 
 
 def idm_actions(state: SimulatorState, cfg: IDMConfig = IDMConfig(),

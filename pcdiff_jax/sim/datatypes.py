@@ -17,6 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from pcdiff_jax.sim import geometry
+
 Array = Any  # jax.Array or np.ndarray; library code accepts both.
 
 DT_SECONDS = 0.1  # WOMD is logged at 10 Hz.
@@ -159,7 +161,6 @@ class Trajectory:
   @property
   def bbox_corners(self) -> Array:
     """(..., O, T, 4, 2) box corners, counter-clockwise from front-left."""
-    from pcdiff_jax.sim import geometry  # geometry imports datatypes-free code only
     return geometry.box_corners(self.x, self.y, self.yaw, self.length, self.width)
 
   @classmethod

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from pcdiff_jax.sim.datatypes import Array
+from jax import Array
 
 
 def wrap_angle(angle: Array) -> Array:

@@ -68,46 +68,86 @@ class OnPolicyConfig:
   runs to max(times)); rejoin_seconds + offset / rejoin_speed: the time to
   re-join the log; max_offset (m), max_heading (rad): farther agents are not
   trained on; mix: the fraction of each fine-tuning batch drawn from the
-  on-policy examples."""
+  on-policy examples; lane_tail: a log is continued past its end along the
+  lane centres (`lane_continuation`), else straight at constant speed (the
+  targets of rounds 0-6 of pcdiff-cpu-v5)."""
   times: tuple[int, ...] = (20, 30, 40, 50)
   rejoin_seconds: float = 3.0
   rejoin_speed: float = 2.0
   max_offset: float = 8.0
   max_heading: float = 0.8
   mix: float = 0.5
+  lane_tail: bool = True
 
 
-def _extended_log(state: SimulatorState, steps: Array, dt: float) -> tuple[Array, Array]:
+def lane_continuation(state: SimulatorState, num_steps: int, dt: float,
+                      max_lane_points: int = 4096, max_yaw_rate: float = 0.8) -> Array:
+  """(O, num_steps, 4) [x, y, yaw, v]: each object's last logged state moved
+  on at its last speed for num_steps steps, steered along the lane centres
+  by pure pursuit (`baselines.idm.pursuit_yaw_rate`, a probe max(6 m, 0.6 s)
+  ahead, lane samples at least 1 m ahead) and straight where no lane is in
+  reach, or the object was stopped or reversing. This is where a vehicle
+  whose synthetic log ends early would have driven: a straight tail left the
+  road on every curve and taught the policy to leave it too (docs/RESULTS.md
+  "Models v6")."""
+  from pcdiff_jax.baselines import idm   # training/closed_loop sits above the baselines
+  traj = state.log_trajectory
+  states = dynamics.states_from_trajectory(traj)                               # (O, T, 4)
+  last = jnp.max(jnp.where(traj.valid, jnp.arange(traj.num_timesteps), -1), axis=-1)
+  end = jnp.take_along_axis(states, jnp.maximum(last, 0)[:, None, None], axis=1)[:, 0]   # (O, 4)
+  lanes = idm.lane_samples(state, max_lane_points)
+
+  def advance(s, _):
+    speed = s[:, 3]
+    rate, found = idm.pursuit_yaw_rate(s[:, :2], s[:, 2], speed, lanes,
+                                       jnp.maximum(6.0, 0.6 * speed), min_ahead=1.0)
+    rate = jnp.where(found & (speed > 0.5), jnp.clip(rate, -max_yaw_rate, max_yaw_rate), 0.0)
+    nxt = dynamics.step(s, jnp.stack([jnp.zeros_like(speed), rate], -1), dt)
+    return nxt, nxt
+  _, path = jax.lax.scan(advance, end, None, length=num_steps)
+  return jnp.moveaxis(path, 0, 1)
+
+
+def _extended_log(state: SimulatorState, steps: Array, dt: float,
+                  continuation: Optional[Array] = None) -> tuple[Array, Array]:
   """Log states (O, K, 4) [x, y, yaw, speed] and validity (O, K) at `steps`
-  (K,), continued past each object's last valid step at constant speed and
-  heading: past the end of the record, and past an earlier end (a synthetic
-  vehicle's log ends where its route leaves the map; without this, such an
-  agent had no target once its log ended, and the policy planned for it
-  unsupervised: half the off-road events, docs/RESULTS.md "Models v5")."""
+  (K,), continued past each object's last valid step: past the end of the
+  record, and past an earlier end (a synthetic vehicle's log ends where its
+  route leaves the scene; without this, such an agent had no target once its
+  log ended, and the policy planned for it unsupervised: half the off-road
+  events, docs/RESULTS.md "Models v5"). The continuation: `continuation`
+  (O, E, 4), the states 1..E steps after each object's last valid one
+  (`lane_continuation`), or constant speed and heading when None."""
   traj = state.log_trajectory
   num_steps = traj.num_timesteps
   states = dynamics.states_from_trajectory(traj)                          # (O, T, 4)
   last = jnp.max(jnp.where(traj.valid, jnp.arange(num_steps), -1), axis=-1)   # (O,), -1: never valid
   end = jnp.take_along_axis(states, jnp.maximum(last, 0)[:, None, None], axis=1)[:, 0]   # (O, 4)
   past = steps[None, :] > last[:, None]                                      # (O, K)
-  beyond = jnp.maximum(steps[None, :] - last[:, None], 0).astype(jnp.float32) * dt   # (O, K) seconds
-  moved = end[:, None, :].repeat(steps.shape[0], axis=1)
-  moved = moved.at[..., :2].add(end[:, None, 3:4] * beyond[..., None] * geometry.unit(end[:, 2])[:, None, :])
+  beyond = jnp.maximum(steps[None, :] - last[:, None], 0)                    # (O, K) steps
+  if continuation is None:
+    moved = end[:, None, :].repeat(steps.shape[0], axis=1)
+    moved = moved.at[..., :2].add(end[:, None, 3:4] * (beyond * dt)[..., None]
+                                  * geometry.unit(end[:, 2])[:, None, :])
+  else:
+    index = jnp.clip(beyond - 1, 0, continuation.shape[1] - 1)
+    moved = jnp.take_along_axis(continuation, index[..., None], axis=1)
   at = jnp.where(past[..., None], moved, states[:, jnp.clip(steps, 0, num_steps - 1)])
   valid = jnp.where(past, (last >= 0)[:, None], traj.valid[:, jnp.clip(steps, 0, num_steps - 1)])
   return at, valid
 
 
 def on_policy_targets(state: SimulatorState, feats, horizon: int, cfg: OnPolicyConfig,
-                      dt: float) -> Targets:
+                      dt: float, continuation: Optional[Array] = None) -> Targets:
   """Targets (A, ...) of one rolled-out scene at t = state.timestep for the
-  agents of `feats`: from each agent's simulated pose back onto its log."""
+  agents of `feats`: from each agent's simulated pose back onto its log
+  (continued past its end by `continuation`, see `_extended_log`)."""
   t = state.timestep
   idx = feats.agent_index
   sim_now = dynamics.states_from_trajectory(state.sim_trajectory)[idx, t]   # (A, 4)
-  log_now, log_valid_now = _extended_log(state, t[None], dt)
+  log_now, log_valid_now = _extended_log(state, t[None], dt, continuation)
   log_now, log_valid_now = log_now[idx, 0], log_valid_now[idx, 0]            # (A, 4), (A,)
-  fut, valid = _extended_log(state, t + 1 + jnp.arange(horizon), dt)
+  fut, valid = _extended_log(state, t + 1 + jnp.arange(horizon), dt, continuation)
   fut, valid = fut[idx], valid[idx]                                          # (A, T, 4), (A, T)
 
   velocity = lambda s: s[..., 3:4] * geometry.unit(s[..., 2])
@@ -142,10 +182,12 @@ def on_policy_targets(state: SimulatorState, feats, horizon: int, cfg: OnPolicyC
 def on_policy_examples(final: SimulatorState, features: FeaturesConfig, horizon: int,
                        cfg: OnPolicyConfig, dt: float) -> Example:
   """Examples (S, ...) of one rolled-out scene at each step of `cfg.times`."""
+  tail = lane_continuation(final, max(cfg.times) + horizon, dt) if cfg.lane_tail else None
+
   def at(t):
     state = final.replace(timestep=jnp.asarray(t, jnp.int32))
     feats = features_lib.scene_features(state, features)
-    return Example(feats=feats, targets=on_policy_targets(state, feats, horizon, cfg, dt))
+    return Example(feats=feats, targets=on_policy_targets(state, feats, horizon, cfg, dt, tail))
   exs = [at(t) for t in cfg.times]
   return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *exs)
 

@@ -117,6 +117,14 @@ def _diff(a: Any, b: Any, prefix: str = "") -> list[str]:
   return [] if a == b else [f"{prefix[:-1]}: saved {a!r}, now {b!r}"]
 
 
+class _DropReadOnlyNotice(logging.Filter):
+  """orbax warns "Given directory is read only" each time a model is loaded
+  read-only, which is what loading is: that one message only, not a warning."""
+
+  def filter(self, record: logging.LogRecord) -> bool:
+    return not str(record.msg).startswith("Given directory is read only")
+
+
 class Checkpointer:
   """orbax CheckpointManager holding {state, config} under WORKDIR/checkpoints."""
 
@@ -124,11 +132,16 @@ class Checkpointer:
     self.directory = os.path.abspath(os.path.join(workdir, "checkpoints"))
     if read_only and not os.path.isdir(self.directory):
       raise FileNotFoundError(f"no checkpoint in {self.directory}")
-    self.manager = ocp.CheckpointManager(
-        self.directory, item_names=("state", "config"),
-        options=ocp.CheckpointManagerOptions(
-            max_to_keep=None if read_only else keep, save_interval_steps=0 if read_only else 1,
-            create=not read_only, read_only=read_only, enable_async_checkpointing=False))
+    quiet = _DropReadOnlyNotice()
+    logging.getLogger("absl").addFilter(quiet)
+    try:
+      self.manager = ocp.CheckpointManager(
+          self.directory, item_names=("state", "config"),
+          options=ocp.CheckpointManagerOptions(
+              max_to_keep=None if read_only else keep, save_interval_steps=0 if read_only else 1,
+              create=not read_only, read_only=read_only, enable_async_checkpointing=False))
+    finally:
+      logging.getLogger("absl").removeFilter(quiet)
 
   def latest_step(self) -> Optional[int]:
     return self.manager.latest_step()
