@@ -6,13 +6,23 @@ WOMD ?= ../shared/data/womd/motion_data_one_example.tfrecord
 DEMO_OUT ?= runs/demo
 PYTEST_WORKERS ?= 2
 
-.PHONY: install demo test bench data train clean
+.PHONY: install lock demo test bench data train clean
 
-$(VENV)/.installed: pyproject.toml
+# Installs the exact versions of requirements.lock (the ones docs/ numbers were measured with),
+# then the package itself without resolving anything again.
+$(VENV)/.installed: pyproject.toml requirements.lock
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[dev]'
+	$(PY) -m pip install -q -r requirements.lock
+	$(PY) -m pip install -q --no-deps -e .
 	touch $@
+
+# Re-resolves requirements.lock from pyproject.toml in a clean venv (commit the result).
+lock:
+	rm -rf .lockenv && $(PYTHON) -m venv .lockenv
+	.lockenv/bin/pip install -q --upgrade pip && .lockenv/bin/pip install -q '.[dev]'
+	.lockenv/bin/pip freeze --exclude-editable | grep -v '^pcdiff_jax' > requirements.lock
+	rm -rf .lockenv
 
 install: $(VENV)/.installed
 

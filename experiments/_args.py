@@ -24,3 +24,14 @@ def output_file(path: str) -> str:
     raise argparse.ArgumentTypeError(f"{path} is a folder: give a file path")
   output_dir(os.path.dirname(path) or ".")
   return path
+
+
+def setup_logging() -> None:
+  """INFO from our own modules; the libraries' start-up chatter (absl, orbax's
+  per-save notices, jax's "no TPU backend" probe, TensorFlow's C++ banner) only
+  from WARNING up."""
+  import logging
+  os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")   # before TensorFlow is first imported
+  logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+  for noisy in ("absl", "orbax", "jax._src.xla_bridge"):
+    logging.getLogger(noisy).setLevel(logging.WARNING)

@@ -13,3 +13,4 @@ def write(out_dir: str, stem: str, rows: list, table: str) -> None:
   with open(os.path.join(out_dir, f"{stem}.md"), "w") as f:
     f.write(table)
   print(table)
+  print(f"wrote {out_dir}/{stem}.json, {stem}.md")

@@ -236,6 +236,7 @@ def main(argv=None) -> None:
   if args.out:
     with open(args.out, "w") as f:
       json.dump({"section": args.section, "num_scenes": num, "rows": rows}, f, indent=1)
+    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

@@ -18,7 +18,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import logging
 import os
 import shutil
 import sys
@@ -96,9 +95,7 @@ def _publish(round_dir: str, source: str, workdir: str) -> None:
 
 def main(argv=None) -> int:
   args = parse_args(argv)
-  logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-  for noisy in ("absl", "orbax", "jax._src.xla_bridge"):
-    logging.getLogger(noisy).setLevel(logging.WARNING)
+  _args.setup_logging()
   from pcdiff_jax import evaluation, policy
   from pcdiff_jax.training import closed_loop, diffusion_stage, encoder_stage, trainer
   from pcdiff_jax.training import data as data_lib
@@ -161,6 +158,8 @@ def main(argv=None) -> int:
     with open(os.path.join(args.workdir, "finetune_summary.json"), "w") as f:
       json.dump(out, f, indent=2)
     print(json.dumps(out, indent=2))
+    print(f"wrote {args.workdir}/finetune_summary.json, the final model in {args.workdir}/diffusion/ "
+          f"(+ encoder/) and each round in {args.workdir}/round-*/")
   except (FileNotFoundError, ValueError, trainer.CheckpointMismatch) as err:
     print(f"error: {err}", file=sys.stderr)
     return 2

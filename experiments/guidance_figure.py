@@ -37,7 +37,8 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--ddim-steps", type=int, default=5)
   p.add_argument("--replan-every", type=int, default=10,
                  help="steps between plans (guided plans cost several gradient passes on CPU)")
-  p.add_argument("--w-map", type=float, default=GuidanceConfig.w_map)
+  p.add_argument("--w-map", type=float, default=None,
+                 help="weight of J_map (default: 100 for objective guidance, 1 for adversarial)")
   p.add_argument("--w-coll", type=float, default=GuidanceConfig.w_coll)
   p.add_argument("--w-pursue", type=float, default=30.0)
   p.add_argument("--eta", type=float, default=0.07)

@@ -83,6 +83,7 @@ def _report(args) -> int:
     print(f.read())
   if "real WOMD sample" not in report["summaries"]:
     print(f"note: real sample not found at {args.real}; synthetic figures only", file=sys.stderr)
+  print(f"wrote {args.stats}/realism.json, realism.md, realism_hist.png, examples.png")
   return 0
 
 

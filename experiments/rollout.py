@@ -10,7 +10,6 @@ Writes OUT/metrics.json, OUT/metrics.md, OUT/scenarios.jsonl and OUT/gifs/.
 from __future__ import annotations
 
 import argparse
-import logging
 import sys
 
 from experiments import _args
@@ -63,7 +62,8 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--seed", type=int, default=0)
   g = p.add_argument_group("guidance (pcdiff, pcdiff-noprior)")
   g.add_argument("--guidance", default="none", choices=GUIDANCE_MODES)
-  g.add_argument("--w-map", type=float, default=GuidanceConfig.w_map)
+  g.add_argument("--w-map", type=float, default=None,
+                 help="weight of J_map (default: 100 for objective guidance, 1 for adversarial)")
   g.add_argument("--w-coll", type=float, default=GuidanceConfig.w_coll)
   g.add_argument("--w-pursue", type=float, default=GuidanceConfig.w_pursue)
   g.add_argument("--eta", type=float, default=GuidanceConfig.eta, help="latent step size")
@@ -76,6 +76,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="object slot of the pursuer (default: the most threatening vehicle)")
   g.add_argument("--max-step", type=float, default=GuidanceConfig.max_step,
                  help="trust region: latent step per agent and inner step")
+  g.add_argument("--field-size", type=int, default=GuidanceConfig.field_size,
+                 help="cells per side of the road field J_map reads (2 m each, centred on the SDC); "
+                      "agents beyond it get no map gradient")
   g.add_argument("--score-adversary", action="store_true",
                  help="score the ego against the most threatening agent in non-adversarial runs too")
   p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -100,7 +103,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.error("--gifs must be >= 0")
   if args.guidance != "none" and args.method not in ("pcdiff", "pcdiff-noprior"):
     p.error(f"--guidance {args.guidance} needs --method pcdiff or pcdiff-noprior")
-  for name in ("guided_steps", "inner_steps", "ibr_rounds"):
+  for name in ("guided_steps", "inner_steps", "ibr_rounds", "field_size"):
     if getattr(args, name) < 1:
       p.error(f"--{name.replace('_', '-')} must be >= 1")
   if args.eta < 0:
@@ -112,7 +115,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 
 def main(argv=None) -> int:
   args = parse_args(argv)
-  logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+  _args.setup_logging()
   cfg = evaluation.EvalConfig(method=args.method, checkpoint=args.checkpoint, ego=args.ego,
                               ddim_steps=args.ddim_steps, consistent_noise=args.consistent_noise,
                               execute=args.execute, prior_centre=args.prior_centre,
@@ -129,7 +132,8 @@ def main(argv=None) -> int:
                                   mode=args.guidance, w_map=args.w_map, w_coll=args.w_coll,
                                   w_pursue=args.w_pursue, eta=args.eta, max_step=args.max_step,
                                   guided_steps=args.guided_steps, inner_steps=args.inner_steps,
-                                  ibr_rounds=args.ibr_rounds, adversary=args.adversary))
+                                  ibr_rounds=args.ibr_rounds, adversary=args.adversary,
+                                  field_size=args.field_size))
   try:
     summary = evaluation.evaluate(args.scenarios, args.out, cfg, progress=not args.no_progress)
   except (FileNotFoundError, ValueError, RuntimeError) as err:

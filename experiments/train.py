@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import logging
 import os
 import sys
 
@@ -84,9 +83,7 @@ def resolve_config(args) -> config_lib.Config:
 
 def main(argv=None) -> int:
   args = parse_args(argv)
-  logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-  for noisy in ("absl", "orbax", "jax._src.xla_bridge"):
-    logging.getLogger(noisy).setLevel(logging.WARNING)
+  _args.setup_logging()
   from pcdiff_jax.training import data as data_lib
   from pcdiff_jax.training import encoder_stage, trainer
   cfg = resolve_config(args)
@@ -126,6 +123,7 @@ def main(argv=None) -> int:
   with open(os.path.join(args.workdir, f"{args.stage}_summary.json"), "w") as f:
     json.dump(out, f, indent=2)
   print(json.dumps(out, indent=2))
+  print(f"wrote {args.workdir}/{args.stage}_summary.json; checkpoints in the stage folders under {args.workdir}/")
   return 0
 
 

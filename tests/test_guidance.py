@@ -13,7 +13,7 @@ from pcdiff_jax.sim import road_field
 
 T = 40
 # The toy latent is a shift in metres: steps of at most 1 m.
-CFG = G.GuidanceConfig(mode="objective", eta=0.5, inner_steps=5, coll_horizon=T, map_stride=2, max_step=1.0)
+CFG = G.GuidanceConfig(mode="objective", w_map=1.0, eta=0.5, inner_steps=5, coll_horizon=T, map_stride=2, max_step=1.0)
 
 
 def _agents(num=3, valid=None, pursuer=-1, evader=-1):
@@ -155,3 +155,11 @@ def test_collision_cost_over_nearest_neighbours_equals_all_pairs():
   for k in (10, 11):
     near = G.collision_cost(xy, yaw, agents, dataclasses.replace(CFG, coll_neighbors=k))
     np.testing.assert_allclose(np.asarray(near), np.asarray(brute), rtol=1e-5)
+
+
+def test_map_weight_defaults_per_mode_and_an_explicit_weight_wins():
+  assert G.GuidanceConfig(mode="objective").map_weight == 100.0
+  assert G.GuidanceConfig(mode="adversarial").map_weight == 1.0
+  assert G.GuidanceConfig(mode="objective", w_map=3.0).map_weight == 3.0
+  with pytest.raises(ValueError, match="w_map"):
+    G.GuidanceConfig(mode="objective", w_map=-1.0).validate()

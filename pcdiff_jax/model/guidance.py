@@ -30,7 +30,7 @@ everyone else, each decoding and rolling out before its gradient.
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable
+from typing import Callable, Optional
 
 import jax
 import jax.numpy as jnp
@@ -49,9 +49,10 @@ _EPS = 1e-6
 class GuidanceConfig:
   """mode: none | objective | adversarial. eta: latent step size; inner_steps
   gradient steps per guided DDIM step; guided_steps: the last k DDIM steps
-  are guided; adversary: object slot of the pursuer (-1: most threatening)."""
+  are guided; adversary: object slot of the pursuer (-1: most threatening).
+  w_map: weight of J_map; None takes the mode's own (`map_weight`)."""
   mode: str = "none"
-  w_map: float = 1.0
+  w_map: Optional[float] = None
   w_coll: float = 1.0
   w_pursue: float = 10.0
   eta: float = 0.05
@@ -65,10 +66,20 @@ class GuidanceConfig:
   map_margin: float = 0.3          # m
   coll_margin: float = 0.3         # m
   pursuit_temperature: float = 1.0  # m, of the soft minimum
-  field_size: int = 128            # cells per side of the road field (+-127 m around the SDC)
+  field_size: int = 256            # cells per side of the road field (+-255 m around the SDC;
+                                   # 128 left the far agents of long roads without J_map)
   field_spacing: float = 2.0       # m; bilinear is exact across straight edges
   max_edge_points: int = 4096      # road-edge samples the field is built from
   adversary: int = -1
+
+  @property
+  def map_weight(self) -> float:
+    """w_map, or the mode's default: 100 for objective guidance (chosen on the
+    first 50 val scenes from 1-300, docs/RESULTS.md "Models v5 guided"), 1 for
+    the adversarial game (the weight Table III was measured with)."""
+    if self.w_map is not None:
+      return self.w_map
+    return 100.0 if self.mode == "objective" else 1.0
 
   def validate(self) -> None:
     if self.mode not in MODES:
@@ -81,6 +92,8 @@ class GuidanceConfig:
       raise ValueError(f"guidance field_spacing must be > 0, got {self.field_spacing}")
     if self.max_step <= 0:
       raise ValueError(f"guidance max_step must be > 0, got {self.max_step}")
+    if self.w_map is not None and self.w_map < 0:
+      raise ValueError(f"guidance w_map must be >= 0, got {self.w_map}")
     if self.eta < 0:
       raise ValueError(f"guidance eta must be >= 0, got {self.eta}")
 
@@ -187,7 +200,7 @@ def agent_objective(xy: Array, yaw: Array, agents: Agents, road: RoadField, cfg:
                            mine.width / 2.0, agents.width[..., None, :] / 2.0, cfg.coll_margin)[..., 0, :]  # (..., A)
   others = agents.valid & (jnp.arange(agents.valid.shape[-1]) != slot[..., None]) & mine.valid
   own_coll = jnp.sum(jnp.where(others, overlap, 0.0), -1)
-  return jnp.where((slot >= 0) & mine.valid[..., 0], cfg.w_map * own_map + cfg.w_coll * own_coll, 0.0)
+  return jnp.where((slot >= 0) & mine.valid[..., 0], cfg.map_weight * own_map + cfg.w_coll * own_coll, 0.0)
 
 
 def pursuit_cost(xy: Array, agents: Agents, cfg: GuidanceConfig) -> Array:
@@ -203,7 +216,7 @@ def pursuit_cost(xy: Array, agents: Agents, cfg: GuidanceConfig) -> Array:
 
 def objective(xy: Array, yaw: Array, agents: Agents, road: RoadField, cfg: GuidanceConfig) -> Array:
   """(..., A) per-agent objective w_map J_map + w_coll J_coll."""
-  return (cfg.w_map * map_cost(xy, yaw, agents, road, cfg)
+  return (cfg.map_weight * map_cost(xy, yaw, agents, road, cfg)
           + cfg.w_coll * collision_cost(xy, yaw, agents, cfg))
 
 
