@@ -179,6 +179,14 @@ def pursuer_at_start(final_state, cfg: EvalConfig) -> jax.Array:
       at_start, metrics_lib.evaluated_agents(final_state, start, cfg.metrics.max_reactive_agents))
 
 
+def _config_record(cfg: EvalConfig) -> dict:
+  """cfg as a dict, with the map weight guidance actually used (w_map=None
+  stands for the mode's default)."""
+  record = dataclasses.asdict(cfg)
+  record["guidance"]["w_map"] = cfg.guidance.map_weight
+  return record
+
+
 def pad_batch(state, size: int):
   """Repeats the last scenario so every batch has the same size (no recompiles)."""
   n = state.shape[0]
@@ -334,7 +342,7 @@ def evaluate(scenarios: Sequence[str] | str, out_dir: str, cfg: EvalConfig,
          if cfg.adversarial_scores else {}),
       "per_seed": per_seed,
       "skipped": skipped,
-      "config": dataclasses.asdict(cfg),
+      "config": _config_record(cfg),
       "device": str(jax.devices()[0]),
   }
   with open(os.path.join(out_dir, "metrics.json"), "w") as f:

@@ -26,6 +26,7 @@ def test_rollout_cli_writes_metrics_and_gif(womd_path, tmp_path, real_state):
   assert "record 1" in summary["skipped"][0]["error"]
   assert 0.0 <= summary["rates"]["collision_rate"] <= 1.0 and summary["rates"]["num_evaluated"] == 128
   assert summary["runtime_ms_per_replan"]["mean"] > 0
+  assert summary["config"]["guidance"]["w_map"] == 1.0   # the weight used, never "the default"
   assert summary["min_ade"]["mean"] >= 0 and summary["realism"]["mean"] >= 0
   assert len((out / "scenarios.jsonl").read_text().splitlines()) == 2
   assert (out / "gifs" / "a3bb37c25ce56418.gif").stat().st_size > 10_000
