@@ -50,7 +50,7 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--warm-start", action=argparse.BooleanOptionalAction, default=True,
                  help="ours: warm-started (amortised) replanning (default) or cold plans (--no-warm-start)")
   p.add_argument("--num-train", type=int, default=400, help="synthetic training scenes")
-  p.add_argument("--num-val", type=int, default=24, help="synthetic val scenes (the closed-loop set)")
+  p.add_argument("--num-val", type=int, default=16, help="synthetic val scenes (the closed-loop set)")
   p.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
   p.add_argument("--batch-size", type=int, default=4, help="scenarios per jitted closed-loop call")
   p.add_argument("--real", default=make_data.REAL_SAMPLE,
