@@ -32,7 +32,8 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--ddim-steps", type=int, default=5)
   p.add_argument("--replan-every", type=int, default=1, help="steps between plans (1 = 10 Hz)")
   p.add_argument("--consistent-noise", action="store_true",
-                 help="draw each agent's initial DDIM noise once per rollout (default: at every replan)")
+                 help="draw each agent's initial DDIM noise once per rollout for its cold plans (default: at "
+                      "every replan; warm-started replans always draw fresh noise)")
   p.add_argument("--execute", default="actions", choices=["actions", "track"],
                  help="pcdiff: run the plan's actions (paper) or track its path 0.5 s ahead (pure pursuit)")
   p.add_argument("--prior-centre", default="mean", choices=["mean", "top1"],

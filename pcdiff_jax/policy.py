@@ -54,7 +54,8 @@ class PolicyConfig:
   the same point of the prior and stay on the same mode. With fresh noise at
   every replan (the default, plain DDIM) an agent can switch modes every
   100 ms: measured in docs/RESULTS.md, consistent noise makes the motion far
-  smoother (realism) but commits agents to a mode (minADE, collisions).
+  smoother (realism) but commits agents to a mode (minADE, collisions). It
+  starts the cold chains only: a warm-started replan draws fresh noise.
 
   execute: "actions" runs the plan's decoded actions open loop until the next
   replan (the paper's policy); "track" instead steers each agent from its

@@ -139,3 +139,20 @@ def test_either_chain_matches_the_chosen_sampler_under_vmap(eta):
   expect_warm = D.ddim_sample(den, mu[1], sig[1], SCHED, keys[1], 2, eta, start_step=30)
   np.testing.assert_allclose(out[0], np.asarray(expect_cold), rtol=1e-5, atol=1e-5)
   np.testing.assert_allclose(out[1], np.asarray(expect_warm), rtol=1e-5, atol=1e-5)
+
+
+def test_given_noise_starts_the_cold_chain_only():
+  """Consistent noise: the given draw starts a cold chain; a warm start draws its
+  own (the same draw at every warm replan pushed every agent the same way)."""
+  m, c = jnp.array([1.0, -2.0]), jnp.array([0.5, 0.4])
+  sigma = jnp.array([0.8, 1.0])
+  den = _gaussian_denoiser(m, c, sigma)
+  mu = jnp.broadcast_to(m, (3, 2))
+  sig = jnp.broadcast_to(sigma, mu.shape)
+  key, noise = jax.random.key(5), 3.0 * jnp.ones((3, 2))
+  run = lambda cold, init: D.ddim_sample_either(den, mu, sig, SCHED, key, jnp.bool_(cold), 5, 2, 30, 0.0,
+                                                init_noise=init)
+  np.testing.assert_allclose(np.asarray(run(True, noise)),
+                             np.asarray(D.ddim_sample(den, mu, sig, SCHED, key, 5, 0.0, init_noise=noise)),
+                             rtol=1e-5, atol=1e-5)
+  np.testing.assert_allclose(np.asarray(run(False, noise)), np.asarray(run(False, None)), rtol=1e-6)
