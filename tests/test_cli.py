@@ -44,8 +44,8 @@ def test_rollout_cli_bad_arguments(tmp_path, capsys):
   assert "missing.tfrecord" in capsys.readouterr().err
 
 
-CLIS = ("bench", "demo", "diagnose", "export", "finetune", "guidance_figure", "latent_report", "make_data",
-        "open_loop", "rollout", "train")
+CLIS = ("bench", "demo", "diagnose", "export", "family_table", "finetune", "guidance_figure", "latent_report",
+        "make_data", "open_loop", "rollout", "train")
 # Each CLI's output option, given a path that cannot be written as asked.
 BAD_OUTPUTS = {"demo": ("--out", "file"), "diagnose": ("--out", "folder"), "export": ("--out", "file"),
                "finetune": ("--workdir", "file"), "guidance_figure": ("--out", "file"),
@@ -71,3 +71,16 @@ def test_every_cli_has_help_and_rejects_a_bad_output_path(name, tmp_path, capsys
   message = capsys.readouterr().err
   assert err.value.code == 2 and str(path) in message and "Traceback" not in message
   assert a_file.read_text() == "{}"   # nothing already written is touched
+
+
+def test_family_table_weights_scenarios_by_their_agents(tmp_path, capsys):
+  from experiments import family_table
+  rows = [{"scenario_id": "syn-merge-0-1-0000000", "collision_rate": 0.5, "offroad_rate": 0.0, "num_evaluated": 2},
+          {"scenario_id": "syn-merge-0-1-0000001", "collision_rate": 0.0, "offroad_rate": 0.25, "num_evaluated": 8},
+          {"scenario_id": "a3bb37c25ce56418", "collision_rate": 0.1, "offroad_rate": 0.2, "num_evaluated": 10}]
+  (tmp_path / "scenarios.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+  table = family_table.rates_by_family(str(tmp_path / "scenarios.jsonl"))
+  assert table["merge"] == pytest.approx((10.0, 20.0, 10)) and table["womd"] == pytest.approx((10.0, 20.0, 10))
+  (tmp_path / "scenarios.jsonl").write_text("{}\n")
+  assert family_table.main([str(tmp_path)]) == 2
+  assert "line 1" in capsys.readouterr().err

@@ -107,15 +107,16 @@ def pursuit_yaw_rate(xy: Array, yaw: Array, speed: Array, lanes: LaneSamples, lo
   ahead of each pose xy (N, 2), yaw, speed (N,), among samples within 45
   degrees of the heading (and at least `min_ahead` m ahead of the pose):
   (yaw rate (N,), whether a sample was found (N,); 0 where none)."""
-  aligned = jnp.sum(lanes.dir[None] * geometry.unit(yaw)[:, None], -1) > jnp.cos(jnp.pi / 4)
-  local = geometry.to_local(lanes.xy[None], xy[:, None], yaw[:, None])    # (N, P, 2)
-  ahead = jnp.broadcast_to(jnp.asarray(lookahead, local.dtype), yaw.shape)
-  probe = jnp.stack([ahead, jnp.zeros_like(ahead)], -1)                    # (N, 2), local
-  d2 = jnp.sum((local - probe[:, None]) ** 2, -1)                           # (N, P)
-  d2 = jnp.where(lanes.valid[None] & aligned & (local[..., 0] >= min_ahead), d2, jnp.inf)
+  heading = geometry.unit(yaw)                                             # (N, 2)
+  aligned = jnp.sum(lanes.dir[None] * heading[:, None], -1) > jnp.cos(jnp.pi / 4)
+  rel = lanes.xy[None] - xy[:, None]                                        # (N, P, 2)
+  ahead = jnp.sum(rel * heading[:, None], -1) >= min_ahead
+  probe = jnp.broadcast_to(jnp.asarray(lookahead, xy.dtype), yaw.shape)[:, None, None] * heading[:, None]
+  d2 = jnp.sum((rel - probe) ** 2, -1)                                      # (N, P)
+  d2 = jnp.where(lanes.valid[None] & aligned & ahead, d2, jnp.inf)
   k = jnp.argmin(d2, axis=1)
   found = jnp.isfinite(jnp.take_along_axis(d2, k[:, None], 1)[:, 0])
-  target = jnp.take_along_axis(local, k[:, None, None], 1)[:, 0]            # (N, 2)
+  target = geometry.to_local(lanes.xy[k], xy, yaw)                          # (N, 2)
   dist2 = jnp.sum(target ** 2, -1) + 1e-6
   curvature = 2.0 * target[:, 1] / dist2                                    # 2 sin(alpha) / d
   return jnp.where(found, speed * curvature, 0.0), found

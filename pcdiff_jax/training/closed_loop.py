@@ -50,6 +50,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from pcdiff_jax.baselines import idm
 from pcdiff_jax.config import Config, FeaturesConfig, TrainConfig
 from pcdiff_jax.model import features as features_lib
 from pcdiff_jax.model.planner import Models
@@ -90,7 +91,6 @@ def lane_continuation(state: SimulatorState, num_steps: int, dt: float,
   whose synthetic log ends early would have driven: a straight tail left the
   road on every curve and taught the policy to leave it too (docs/RESULTS.md
   "Models v6")."""
-  from pcdiff_jax.baselines import idm   # training/closed_loop sits above the baselines
   traj = state.log_trajectory
   states = dynamics.states_from_trajectory(traj)                               # (O, T, 4)
   last = jnp.max(jnp.where(traj.valid, jnp.arange(traj.num_timesteps), -1), axis=-1)
