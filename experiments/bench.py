@@ -13,6 +13,9 @@ agents, 256 map pieces; per preset: ms per scene and XLA temp memory).
 with objective / adversarial guidance (default settings), and the road field's
 build (once per scenario).
 
+`lanes`: one cold replanning at 65 agents without and with the denoiser's
+lane-relative inputs (`model.lane_context`), and their computation alone.
+
 `policy` (the replanning step of ours, weights untrained: speed does not
 depend on their values): the time of one replanning for the reactive agents
 split into encode (features + encoder + proposal latents), sample (DDIM) and
@@ -266,7 +269,32 @@ def bench_guidance(path: str, preset: str, repeats: int) -> dict:
   return out
 
 
-SECTIONS = ("parse", "rollout", "encoder", "policy", "guidance")
+def bench_lane_inputs(path: str, preset: str, repeats: int) -> dict:
+  """What the denoiser's lane-relative inputs (`DenoiserConfig.lane_inputs`,
+  the shipped model's since v6) cost: one cold replanning of one scene (65
+  agents, 5 DDIM steps) without and with them, and their computation alone."""
+  import dataclasses
+  from pcdiff_jax import policy
+  from pcdiff_jax.config import get_config
+  from pcdiff_jax.data import womd
+  from pcdiff_jax.model import features, lane_context
+  from pcdiff_jax.sim import env
+  state = env.reset(womd.load(path)[0])
+  base = get_config(preset)
+  rng = jax.random.PRNGKey(2)
+  pcfg = policy.PolicyConfig(ddim_steps=5, warm_start=False)
+  out = {"agents": base.features.max_agents, "ddim_steps": 5}
+  for name, on in (("without", False), ("with", True)):
+    cfg = dataclasses.replace(base, diffusion=dataclasses.replace(base.diffusion, denoiser=dataclasses.replace(
+        base.diffusion.denoiser, lane_inputs=on)))
+    models = _policy_models(state, cfg)
+    out[name] = _compiled_ms(lambda m, s, r: policy.plan_actions(m, s, cfg, pcfg, r), (models, state, rng), repeats)
+  feats = jax.jit(lambda s: features.scene_features(s, base.features))(state)
+  out["lane_inputs_alone"] = _compiled_ms(lane_context.lane_inputs, (feats,), repeats)
+  return out
+
+
+SECTIONS = ("parse", "rollout", "encoder", "policy", "guidance", "lanes")
 
 
 def main(argv=None) -> int:
@@ -301,6 +329,8 @@ def main(argv=None) -> int:
   if "policy" in args.sections:
     results["policy"] = bench_policy(args.scenarios, args.policy_preset, args.agents, args.ddim_steps,
                                      args.policy_batch_sizes, args.repeats)
+  if "lanes" in args.sections:
+    results["lane_inputs"] = bench_lane_inputs(args.scenarios, args.policy_preset, args.repeats)
   if "guidance" in args.sections:
     results["guidance"] = bench_guidance(args.scenarios, args.policy_preset, args.repeats)
   print(json.dumps(results, indent=2))

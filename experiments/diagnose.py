@@ -9,8 +9,11 @@ replay        executes one 8 s plan made at the rollout start, open loop, for
               `log` (the logged future through inverse dynamics), `log-latent`
               (the same, projected on the PCA latent and decoded), `top1` (the
               encoder's most likely proposal), `top1-latent` (its latent
-              projection), `oracle` (the proposal closest to the log). Tells
-              what the representation itself costs before any diffusion.
+              projection), `oracle` (the proposal closest to the log),
+              `sample` (one cold DDIM plan of the policy, 5 steps) and
+              `sample-guided` (the same under objective guidance). Tells
+              what the representation itself costs before any diffusion, and
+              how good one sampled plan is without the 10 Hz corrections.
 drift         closed-loop rollout of a method; the controlled agents' offset
               from their log in the log's own frame (lateral: left positive)
               and heading error at 1, 2, 4, 6, 8 s.
@@ -38,7 +41,7 @@ from pcdiff_jax.sim import dynamics, env
 from pcdiff_jax.sim.actors import Actor, ActorOutput
 from pcdiff_jax.sim.datatypes import Action, ObjectType
 
-PLANS = ("log", "log-latent", "top1", "top1-latent", "oracle")
+PLANS = ("log", "log-latent", "top1", "top1-latent", "oracle", "sample", "sample-guided")
 DRIFT_SECONDS = (1, 2, 4, 6, 8)
 
 
@@ -59,8 +62,14 @@ def _log_actions(state, horizon: int, cfg):
 
 
 def _plan(kind: str, models, cfg):
-  """state -> per-object actions (O, T, 2) and planned (O,) for a replay kind."""
-  def make(state):
+  """(state, rng) -> per-object actions (O, T, 2) and planned (O,) for a replay kind."""
+  def make(state, rng):
+    if kind in ("sample", "sample-guided"):
+      from pcdiff_jax.model import guidance
+      mode = "objective" if kind == "sample-guided" else "none"
+      cold = policy.PolicyConfig(warm_start=False, guidance=guidance.GuidanceConfig(mode=mode))
+      actions, planned, _ = policy.plan_actions(models, state, cfg, cold, rng)
+      return actions, planned
     feats = features_lib.scene_features(state, cfg.features)
     num_objects = state.object_metadata.ids.shape[-1]
     planned = features_lib.scatter_to_objects(feats.agent_valid, feats, num_objects, fill=False).astype(bool)
@@ -96,8 +105,7 @@ def _replay_actor(kind: str, models, cfg) -> Actor:
   make = _plan(kind, models, cfg)
 
   def init(rng, state):
-    del rng
-    plan, planned = make(state)
+    plan, planned = make(state, rng)
     return (policy.reactive_set(state, cfg), plan, planned, jnp.zeros((), jnp.int32))
 
   def select_action(params, state, actor_state, rng):

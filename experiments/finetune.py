@@ -57,6 +57,19 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--straight-tail", action="store_true",
                  help="continue a log past its end straight at constant speed (rounds 0-6 of v5), "
                       "not along the lane centres")
+  p.add_argument("--targets", choices=("rejoin", "guided"), default="rejoin",
+                 help="on-policy labels: rejoin = from the simulated pose back onto the log; guided = the "
+                      "model's own cold plan at the visited state under objective guidance (guidance "
+                      "distilled into the unguided policy)")
+  p.add_argument("--teacher-w-map", type=float, default=100.0, help="guided targets: the teacher's w_map")
+  p.add_argument("--teacher-w-coll", type=float, default=1.0, help="guided targets: the teacher's w_coll")
+  p.add_argument("--teacher-guided-steps", type=int, default=3,
+                 help="guided targets: the teacher's guided DDIM steps (of 5)")
+  p.add_argument("--teacher-inner-steps", type=int, default=3,
+                 help="guided targets: gradient steps per guided DDIM step")
+  p.add_argument("--lane-inputs", action="store_true",
+                 help="give the denoiser each agent's lane-relative inputs (model.lane_context) through a "
+                      "new zero-initialised projection, trained from here on")
   p.add_argument("--rollout-batch", type=int, default=4, help="scenes per jitted rollout call")
   p.add_argument("--max-agents", type=int, default=64, help="reactive agents the policy controls")
   p.add_argument("--seed", type=int, default=0)
@@ -75,6 +88,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.error("--first-scene must be >= 0")
   if args.encoder_steps < 0:
     p.error("--encoder-steps must be >= 0")
+  if not 1 <= args.teacher_guided_steps <= 5 or args.teacher_inner_steps < 1:
+    p.error("--teacher-guided-steps must be in [1, 5] and --teacher-inner-steps >= 1")
+  if args.teacher_w_map < 0 or args.teacher_w_coll < 0:
+    p.error("--teacher-w-map and --teacher-w-coll must be >= 0")
   return args
 
 
@@ -104,10 +121,21 @@ def main(argv=None) -> int:
     if not os.path.isdir(os.path.join(args.source, "diffusion")):
       raise FileNotFoundError(f"--from {args.source}: no diffusion/ model folder there")
     models, model_cfg = diffusion_stage.load(args.source)
+    if args.lane_inputs:
+      from pcdiff_jax.model import denoiser
+      den_cfg = dataclasses.replace(model_cfg.diffusion.denoiser, lane_inputs=True)
+      model_cfg = dataclasses.replace(model_cfg, diffusion=dataclasses.replace(model_cfg.diffusion, denoiser=den_cfg))
+      models = models.replace(denoiser=denoiser.with_new_inputs(models.denoiser, den_cfg))
     metrics_cfg = dataclasses.replace(model_cfg.metrics, max_reactive_agents=args.max_agents)
     run_cfg = evaluation.with_agent_cap(model_cfg, metrics_cfg)
     ocfg = closed_loop.OnPolicyConfig(times=tuple(args.times), max_offset=args.max_offset, mix=args.mix,
-                                      lane_tail=not args.straight_tail)
+                                      lane_tail=not args.straight_tail, targets=args.targets)
+    teacher = None
+    if args.targets == "guided":
+      from pcdiff_jax.model import guidance
+      teacher = policy.PolicyConfig(ddim_steps=5, warm_start=False, guidance=guidance.GuidanceConfig(
+          mode="objective", w_map=args.teacher_w_map, w_coll=args.teacher_w_coll,
+          guided_steps=args.teacher_guided_steps, inner_steps=args.teacher_inner_steps))
     tc = model_cfg.diffusion_train
     tc = dataclasses.replace(tc, total_steps=args.steps, learning_rate=args.learning_rate,
                              warmup_steps=min(50, args.steps // 10), eval_every=args.steps,
@@ -130,7 +158,7 @@ def main(argv=None) -> int:
         on_policy, info = closed_loop.collect(
             models, run_cfg, policy.PolicyConfig(), files, ocfg, first=args.first_scene + r * args.scenes,
             count=args.scenes, batch_size=args.rollout_batch, seed=args.seed + r,
-            progress=not args.no_progress)
+            progress=not args.no_progress, teacher=teacher)
         info["minutes"] = (time.time() - t0) / 60
         data_lib.write_examples(path, on_policy, info)
       print(f"round {r}: {json.dumps(info)}")

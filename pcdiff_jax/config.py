@@ -81,7 +81,10 @@ class DenoiserConfig:
 
   `use_prior` False is the context-only ablation (no proposal tokens).
   `latent_scale` divides latents at the input (and multiplies the output):
-  PCA coordinates of standardised actions are a few units.
+  PCA coordinates of standardised actions are a few units. `lane_inputs`
+  adds each agent's lane-relative inputs (`model.lane_context`) to its token
+  through a zero-initialised projection, so a model trained without them
+  loads and starts from the same function (`denoiser.with_new_inputs`).
   """
   d_model: int = 128
   num_heads: int = 8
@@ -91,6 +94,7 @@ class DenoiserConfig:
   latent_scale: float = 4.0
   radius: float = 100.0            # m, distance scale of the relative pose
   compute_dtype: str = "float32"   # or "bfloat16" (matmuls; parameters stay float32)
+  lane_inputs: bool = False        # each agent's lane-relative inputs (`model.lane_context`)
 
 
 @dataclasses.dataclass(frozen=True)

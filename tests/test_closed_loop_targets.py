@@ -148,3 +148,41 @@ def test_a_log_that_ends_early_is_continued_along_its_lane():
   world = geometry.from_local(got.future_xy[a], jnp.stack([sim.x[1, 50], sim.y[1, 50]]), sim.yaw[1, 50])
   gap = np.min(np.linalg.norm(np.asarray(world)[35:, None] - arc[None], axis=-1), axis=-1)
   assert bool(got.future_valid[a].all()) and gap.max() < 0.3, gap
+
+
+def test_guided_targets_are_the_guided_plan_of_the_visited_state(tiny_models):
+  """`targets="guided"`: each modelled agent's target is the teacher's
+  (objective-guided) plan from its simulated pose: in the world frame it is
+  the path the teacher planned; unmodelled slots are invalid and zero; a
+  teacher without guidance is refused."""
+  from pcdiff_jax import policy
+  from pcdiff_jax.model import guidance, planner
+  teacher = policy.PolicyConfig(ddim_steps=2, warm_start=False, execute="track", guidance=guidance.GuidanceConfig(
+      mode="objective", guided_steps=1, inner_steps=1, field_size=64))
+  t = 20
+  state, feats = _drifted(t, (0.5, 1.0), 0.1)
+  rng = jax.random.key(3)
+
+  @jax.jit
+  def run(state, feats):
+    road = guidance.road_of(state, teacher.guidance)
+    got = closed_loop.guided_targets(tiny_models, state, feats, CFG, teacher, rng, road)
+    _, planned, path = policy.plan_actions(tiny_models, state, CFG, teacher, rng, road=road)
+    return got, planned[feats.agent_index], path[feats.agent_index]
+  got, planned, path = run(state, feats)
+  modelled = np.asarray(feats.agent_valid & planned)
+  assert modelled.sum() >= 3
+  np.testing.assert_array_equal(np.asarray(got.future_valid), np.repeat(modelled[:, None], T, 1))
+  np.testing.assert_allclose(np.asarray(got.current_speed)[modelled],
+                             np.asarray(planner.agent_speed(feats))[modelled], atol=1e-5)
+  sim = state.sim_trajectory
+  for a in np.flatnonzero(modelled):
+    o = int(feats.agent_index[a])
+    world = geometry.from_local(got.future_xy[a], jnp.stack([sim.x[o, t], sim.y[o, t]]), sim.yaw[o, t])
+    np.testing.assert_allclose(np.asarray(world), np.asarray(path[a]), atol=1e-2)
+  assert not np.asarray(got.future_xy)[~modelled].any()
+  import pytest
+  with pytest.raises(ValueError, match="objective guidance"):
+    closed_loop.make_collect_fn(None, CFG, closed_loop.OnPolicyConfig(targets="guided"), policy.PolicyConfig())
+  with pytest.raises(ValueError, match="targets must be one of"):
+    closed_loop.make_collect_fn(None, CFG, closed_loop.OnPolicyConfig(targets="log"))

@@ -35,6 +35,7 @@ from flax import struct
 
 from pcdiff_jax.config import DenoiserConfig
 from pcdiff_jax.model.encoder import relative_pose
+from pcdiff_jax.model.lane_context import LANE_DIM
 from pcdiff_jax.sim.datatypes import Array
 
 _NEG = -1e9
@@ -47,7 +48,8 @@ class DenoiserInputs:
   agent_tokens: (..., A, c); agent_valid: (..., A); agent_center,
   agent_dir: (..., A, 2) scene frame; context_tokens: (..., N, c),
   context_valid: (..., N); prior_latents: (..., A, K, d_y); prior_probs:
-  (..., A, K).
+  (..., A, K); agent_lane: (..., A, F) lane-relative inputs
+  (`model.lane_context`; F = 0 when the config does not use them).
   """
   agent_tokens: Array
   agent_valid: Array
@@ -57,6 +59,7 @@ class DenoiserInputs:
   context_valid: Array
   prior_latents: Array
   prior_probs: Array
+  agent_lane: Array
 
 
 def step_embedding(s: Array, dim: int) -> Array:
@@ -139,6 +142,8 @@ class Denoiser(nn.Module):
     temb = Dense(d)(nn.gelu(Dense(d)(step_embedding(s, d))))
     h = (Dense(d, name="in_y")(y / scale) + Dense(d, name="in_ctx")(inputs.agent_tokens)
          + temb[None])
+    if cfg.lane_inputs:   # zero-initialised: a model trained without them is unchanged at first
+      h = h + Dense(d, kernel_init=nn.initializers.zeros, name="in_lane")(inputs.agent_lane)
     centre = jnp.where(av[:, None], inputs.agent_center, 0.0)
     direction = jnp.where(av[:, None], inputs.agent_dir, jnp.array([1.0, 0.0]))
     rpe = relative_pose(centre, direction, None, cfg.radius)            # (A, A, 5)
@@ -163,6 +168,17 @@ def init(rng: Array, y: Array, s: Array, inputs: DenoiserInputs, config: Denoise
   """Parameters for one scene's shapes (pass unbatched y (A, d_y) and inputs)."""
   # Jitted: an eager init compiles every op on its own.
   return jax.jit(Denoiser(config, y.shape[-1]).init)(rng, y, s, inputs)
+
+
+def with_new_inputs(params: Any, config: DenoiserConfig) -> Any:
+  """Parameters of a model trained without the optional inputs that `config`
+  turns on (`lane_inputs`), extended by their zero-initialised projections:
+  the extended model computes the same function until it is trained."""
+  inner = params["params"]
+  if config.lane_inputs and "in_lane" not in inner:
+    inner = {**inner, "in_lane": {"kernel": jnp.zeros((LANE_DIM, config.d_model), jnp.float32),
+                                  "bias": jnp.zeros((config.d_model,), jnp.float32)}}
+  return {**params, "params": inner}
 
 
 def apply(params: Any, y: Array, s: Array, inputs: DenoiserInputs, config: DenoiserConfig,

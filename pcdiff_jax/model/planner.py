@@ -17,7 +17,7 @@ from flax import struct
 
 from pcdiff_jax.config import Config
 from pcdiff_jax.model import denoiser as denoiser_lib
-from pcdiff_jax.model import diffusion, encoder, latent
+from pcdiff_jax.model import diffusion, encoder, lane_context, latent
 from pcdiff_jax.model import features as features_lib
 from pcdiff_jax.model.denoiser import DenoiserInputs
 from pcdiff_jax.model.features import SceneFeatures
@@ -84,7 +84,9 @@ def condition(encoder_params: Any, stats: LatentStats, feats: SceneFeatures, cfg
       agent_tokens=out.agent_tokens, agent_valid=out.agent_valid,
       agent_center=feats.agent_center, agent_dir=feats.agent_dir,
       context_tokens=out.context_tokens, context_valid=out.context_valid,
-      prior_latents=props, prior_probs=out.probs)
+      prior_latents=props, prior_probs=out.probs,
+      agent_lane=(lane_context.lane_inputs(feats) if cfg.diffusion.denoiser.lane_inputs
+                  else jnp.zeros(feats.agent_valid.shape + (0,), jnp.float32)))
   return Conditioning(inputs=inputs, mu=mu, sigma=sigma, speed=speed, proposals=props,
                       probs=out.probs)
 

@@ -53,6 +53,8 @@ import numpy as np
 from pcdiff_jax.baselines import idm
 from pcdiff_jax.config import Config, FeaturesConfig, TrainConfig
 from pcdiff_jax.model import features as features_lib
+from pcdiff_jax.model import guidance as guidance_lib
+from pcdiff_jax.model import latent, planner
 from pcdiff_jax.model.planner import Models
 from pcdiff_jax.sim import dynamics, env, geometry
 from pcdiff_jax.sim.datatypes import Array, SimulatorState
@@ -71,7 +73,10 @@ class OnPolicyConfig:
   trained on; mix: the fraction of each fine-tuning batch drawn from the
   on-policy examples; lane_tail: a log is continued past its end along the
   lane centres (`lane_continuation`), else straight at constant speed (the
-  targets of rounds 0-6 of pcdiff-cpu-v5)."""
+  targets of rounds 0-6 of pcdiff-cpu-v5); targets: "rejoin" (the
+  simulated pose re-joins the log, `on_policy_targets`) or "guided" (the
+  policy's own plan at that state under objective guidance, `guided_targets`:
+  guidance distilled into the unguided model)."""
   times: tuple[int, ...] = (20, 30, 40, 50)
   rejoin_seconds: float = 3.0
   rejoin_speed: float = 2.0
@@ -79,6 +84,10 @@ class OnPolicyConfig:
   max_heading: float = 0.8
   mix: float = 0.5
   lane_tail: bool = True
+  targets: str = "rejoin"
+
+
+TARGETS = ("rejoin", "guided")
 
 
 def lane_continuation(state: SimulatorState, num_steps: int, dt: float,
@@ -179,49 +188,91 @@ def on_policy_targets(state: SimulatorState, feats, horizon: int, cfg: OnPolicyC
                  future_valid=valid, current_speed=jnp.where(feats.agent_valid, sim_now[:, 3], 0.0))
 
 
-def on_policy_examples(final: SimulatorState, features: FeaturesConfig, horizon: int,
-                       cfg: OnPolicyConfig, dt: float) -> Example:
-  """Examples (S, ...) of one rolled-out scene at each step of `cfg.times`."""
-  tail = lane_continuation(final, max(cfg.times) + horizon, dt) if cfg.lane_tail else None
+def guided_targets(models: Models, state: SimulatorState, feats, model_cfg: Config, teacher,
+                   rng: Array, road) -> Targets:
+  """Targets (A, ...) of one rolled-out scene at t = state.timestep: the joint
+  plan that `teacher` (a `policy.PolicyConfig` with objective guidance: the
+  map and collision costs of `model.guidance`) samples there, cold, for the
+  agents of `feats`, rolled out in each agent's frame.
 
-  def at(t):
+  DAgger with a guided teacher: on the states the unguided policy visits, the
+  label is what the same model does when guidance keeps its plan on the road
+  and clear of the others, so the fine-tuned model learns to make that plan
+  without guidance (its test-time cost unchanged). `road`: the scene's road
+  field (`guidance.road_of`), built once per scene."""
+  from pcdiff_jax import policy as policy_lib
+  actions, planned, _ = policy_lib.plan_actions(models, state, model_cfg, teacher, rng, road=road)
+  idx = feats.agent_index
+  valid = planned[idx] & feats.agent_valid                                   # (A,)
+  speed = jnp.where(valid, planner.agent_speed(feats), 0.0)                  # (A,)
+  states = dynamics.rollout(latent.initial_states(speed), actions[idx], model_cfg.kinematics.dt)
+  mask = jnp.broadcast_to(valid[:, None], states.shape[:2])
+  zero = lambda a: jnp.where(mask if a.ndim == 2 else mask[..., None], a, 0.0)
+  return Targets(future_xy=zero(states[..., :2]), future_yaw=zero(states[..., 2]),
+                 future_speed=zero(states[..., 3]), future_valid=mask, current_speed=speed)
+
+
+def on_policy_examples(final: SimulatorState, features: FeaturesConfig, horizon: int,
+                       cfg: OnPolicyConfig, dt: float, teacher=None) -> Example:
+  """Examples (S, ...) of one rolled-out scene at each step of `cfg.times`.
+  teacher: (state, feats, k) -> Targets for `cfg.targets` "guided"."""
+  tail = None
+  if cfg.targets == "rejoin" and cfg.lane_tail:
+    tail = lane_continuation(final, max(cfg.times) + horizon, dt)
+
+  def at(k, t):
     state = final.replace(timestep=jnp.asarray(t, jnp.int32))
     feats = features_lib.scene_features(state, features)
+    if cfg.targets == "guided":
+      return Example(feats=feats, targets=teacher(state, feats, k))
     return Example(feats=feats, targets=on_policy_targets(state, feats, horizon, cfg, dt, tail))
-  exs = [at(t) for t in cfg.times]
+  exs = [at(k, t) for k, t in enumerate(cfg.times)]
   return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *exs)
 
 
-def make_collect_fn(actor, model_cfg: Config, cfg: OnPolicyConfig):
+def make_collect_fn(actor, model_cfg: Config, cfg: OnPolicyConfig, teacher=None):
   """jit(vmap): (states (B,), rngs (B,), models) -> Example (B, S, ...) of the
-  policy's rollouts from WOMD's current step to max(times)."""
+  policy's rollouts from WOMD's current step to max(times). teacher: the
+  guided `policy.PolicyConfig` that labels the visited states when
+  cfg.targets is "guided"."""
   init = env.WOMD_INIT_STEPS
   num_steps = max(cfg.times) - (init - 1)
   if min(cfg.times) < init:
     raise ValueError(f"on-policy times must be >= {init}, got {cfg.times}")
+  if cfg.targets not in TARGETS:
+    raise ValueError(f"on-policy targets must be one of {TARGETS}, got {cfg.targets!r}")
+  if cfg.targets == "guided" and (teacher is None or teacher.guidance.mode != "objective"):
+    raise ValueError("guided on-policy targets need a teacher PolicyConfig with objective guidance")
 
   def one(state, rng, models):
-    final = env.rollout(env.reset(state, init), actor, num_steps, rng, params=models).final_state
+    k_roll, k_teach = jax.random.split(rng)
+    start = env.reset(state, init)
+    final = env.rollout(start, actor, num_steps, k_roll, params=models).final_state
+    label = None
+    if cfg.targets == "guided":
+      road = guidance_lib.road_of(start, teacher.guidance)   # once per scene, around the SDC at t0
+      label = lambda s, feats, k: guided_targets(models, s, feats, model_cfg, teacher,
+                                                 jax.random.fold_in(k_teach, k), road)
     return on_policy_examples(final, model_cfg.features, model_cfg.encoder.horizon, cfg,
-                              model_cfg.kinematics.dt)
+                              model_cfg.kinematics.dt, label)
   return jax.jit(jax.vmap(one, in_axes=(0, 0, None)))
 
 
 def collect(models: Models, model_cfg: Config, policy_cfg, paths: Sequence[str], cfg: OnPolicyConfig,
             first: int, count: int, batch_size: int = 4, seed: int = 0,
-            progress: bool = True) -> tuple[Example, dict]:
+            progress: bool = True, teacher=None) -> tuple[Example, dict]:
   """On-policy examples of training scenes [first, first + count) of `paths`.
 
   `model_cfg` is the config the policy runs with (its agent cap: the SDC and
   every evaluated agent, `evaluation.with_agent_cap`). Returns numpy
   Example (N, ...) and info {"scenes", "skipped", "usable_agents",
-  "mean_offset"}. A scenario that fails is skipped with a warning.
+  "mean_offset"}. teacher: the guided policy of "guided" targets. A scenario that fails is skipped with a warning.
   """
   from tqdm.auto import tqdm
   from pcdiff_jax import evaluation, policy
   from pcdiff_jax.data import womd
   actor = policy.actor(model_cfg, policy_cfg)
-  fn = make_collect_fn(actor, model_cfg, cfg)
+  fn = make_collect_fn(actor, model_cfg, cfg, teacher)
   chunks, skipped, done = [], [], 0
   batches = womd.iterate(paths, batch_size=batch_size, with_meta=True, on_error="skip",
                          skipped=skipped, max_scenarios=first + count)
