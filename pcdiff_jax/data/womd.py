@@ -123,7 +123,17 @@ def expand_paths(paths: Union[str, os.PathLike, Sequence[Union[str, os.PathLike]
   return files
 
 
+def quiet_tensorflow_env() -> None:
+  """Before TensorFlow's first import: no C++ start-up banner. We use TF only
+  to read and write TFRecords (no TF numerics), so oneDNN's kernels do not
+  matter, and TF 2.21 prints their notice whatever TF_CPP_MIN_LOG_LEVEL says.
+  A user's own setting of either variable wins."""
+  os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
+  os.environ.setdefault("TF_ENABLE_ONEDNN_OPTS", "0")
+
+
 def _tf():
+  quiet_tensorflow_env()
   import tensorflow as tf  # imported lazily: only the loader/writer needs TF
   tf.config.set_visible_devices([], "GPU")  # TF must never take JAX's GPU
   return tf

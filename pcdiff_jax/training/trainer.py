@@ -223,6 +223,8 @@ class ScalarLog:
     os.makedirs(workdir, exist_ok=True)
     self._jsonl = open(os.path.join(workdir, "metrics.jsonl"), "a")
     try:
+      from pcdiff_jax.data import womd
+      womd.quiet_tensorflow_env()
       import tensorflow as tf
       from tensorflow.core.framework import summary_pb2
     except ImportError:  # event files are a convenience; jsonl always works
