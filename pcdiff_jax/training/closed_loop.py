@@ -213,9 +213,9 @@ def guided_targets(models: Models, state: SimulatorState, feats, model_cfg: Conf
 
 
 def on_policy_examples(final: SimulatorState, features: FeaturesConfig, horizon: int,
-                       cfg: OnPolicyConfig, dt: float, teacher=None) -> Example:
+                       cfg: OnPolicyConfig, dt: float, label=None) -> Example:
   """Examples (S, ...) of one rolled-out scene at each step of `cfg.times`.
-  teacher: (state, feats, k) -> Targets for `cfg.targets` "guided"."""
+  label: (state, feats, k) -> Targets of the k-th cut, for `cfg.targets` "guided"."""
   tail = None
   if cfg.targets == "rejoin" and cfg.lane_tail:
     tail = lane_continuation(final, max(cfg.times) + horizon, dt)
@@ -224,7 +224,7 @@ def on_policy_examples(final: SimulatorState, features: FeaturesConfig, horizon:
     state = final.replace(timestep=jnp.asarray(t, jnp.int32))
     feats = features_lib.scene_features(state, features)
     if cfg.targets == "guided":
-      return Example(feats=feats, targets=teacher(state, feats, k))
+      return Example(feats=feats, targets=label(state, feats, k))
     return Example(feats=feats, targets=on_policy_targets(state, feats, horizon, cfg, dt, tail))
   exs = [at(k, t) for k, t in enumerate(cfg.times)]
   return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *exs)
