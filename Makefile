@@ -6,7 +6,7 @@ WOMD ?= ../shared/data/womd/motion_data_one_example.tfrecord
 DEMO_OUT ?= runs/demo
 PYTEST_WORKERS ?= 2
 
-.PHONY: install lock demo test bench data train clean
+.PHONY: install lock demo test notebook bench data train clean
 
 # Installs the exact versions of requirements.lock (the ones docs/ numbers were measured with),
 # then the package itself without resolving anything again.
@@ -49,6 +49,10 @@ train: install
 	$(PY) -m experiments.finetune --from $(TRAIN_DIR)-onpolicy --data 'data/synth10k/train-*' --workdir $(TRAIN_DIR)-lanes \
 	  --cache-dir $(TRAIN_DIR)/cache $(LANE_ARGS)
 	$(PY) -m experiments.export --workdir $(TRAIN_DIR)-lanes --out $(TRAIN_DIR)-model
+
+# Re-executes notebooks/quickstart.ipynb in place on the shipped model (commit the outputs).
+notebook: install
+	$(VENV)/bin/jupyter-execute --inplace notebooks/quickstart.ipynb
 
 bench: install
 	$(PY) -m experiments.bench --scenarios $(WOMD)

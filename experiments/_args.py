@@ -35,3 +35,47 @@ def setup_logging() -> None:
   logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
   for noisy in ("absl", "orbax", "jax._src.xla_bridge"):
     logging.getLogger(noisy).setLevel(logging.WARNING)
+
+
+def add_device_flags(parser: argparse.ArgumentParser, hosts: bool = True) -> None:
+  """--devices, and with `hosts` the multi-host flags (`pcdiff_jax.distributed`)."""
+  g = parser.add_argument_group("devices and hosts")
+  g.add_argument("--devices", type=int, default=None,
+                 help="use the first N devices (default: every device); the batch is split over them")
+  if not hosts:
+    return
+  g.add_argument("--coordinator", default=None,
+                 help="several hosts: HOST:PORT of process 0 (default: $JAX_COORDINATOR_ADDRESS)")
+  g.add_argument("--num-processes", type=int, default=None,
+                 help="several hosts: how many processes (default: $JAX_NUM_PROCESSES)")
+  g.add_argument("--process-id", type=int, default=None,
+                 help="several hosts: this process's index (default: $JAX_PROCESS_ID)")
+  g.add_argument("--distributed", action="store_true",
+                 help="several hosts: let JAX detect the rest from its cluster (SLURM, Open MPI, Cloud TPU)")
+
+
+def check_device_flags(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+  """Usage errors (exit 2) for values that can never work; the device count is
+  checked later, once the devices are known."""
+  if args.devices is not None and args.devices < 1:
+    parser.error("--devices must be >= 1")
+  num, pid = getattr(args, "num_processes", None), getattr(args, "process_id", None)
+  if num is not None and num < 1:
+    parser.error("--num-processes must be >= 1")
+  if pid is not None and (pid < 0 or (num is not None and pid >= num)):
+    parser.error("--process-id must be in [0, --num-processes)")
+
+
+def device_mesh(args: argparse.Namespace):
+  """Connects the hosts (when asked) and returns the `data` mesh over
+  --devices, or None for a single device (the one-device code path).
+  Raises ValueError when more devices are asked for than there are."""
+  import jax
+
+  from pcdiff_jax import distributed
+  if hasattr(args, "coordinator"):   # the flags, else the environment variables, when set
+    distributed.initialize(args.coordinator, args.num_processes, args.process_id, auto=args.distributed)
+  n = jax.device_count() if args.devices is None else args.devices
+  if n == 1 and jax.process_count() == 1:
+    return None
+  return distributed.data_mesh(args.devices)

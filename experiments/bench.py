@@ -23,6 +23,14 @@ decode (latent -> actions -> rollout with f); its scaling with the padded
 agent count (8-128), DDIM steps and scenarios per call (vmap); and the
 80-step closed loop as one fused `lax.scan` against a Python loop calling the
 jitted step. Compile time is excluded and reported separately.
+
+`devices`: data-parallel training steps/s (the stage-1 step, the preset's
+global batch split over N devices) and scenario-parallel closed-loop scenes/s
+(cv and ours, untrained weights) over the first N devices, for N in
+--device-counts (`pcdiff_jax.distributed`). On a CPU host the N devices are
+fake ones that share its cores (this section asks JAX for them before it
+starts): the figures show the plumbing, not a speed-up. On a multi-GPU host
+they are the real scaling.
 """
 from __future__ import annotations
 
@@ -294,7 +302,77 @@ def bench_lane_inputs(path: str, preset: str, repeats: int) -> dict:
   return out
 
 
-SECTIONS = ("parse", "rollout", "encoder", "policy", "guidance", "lanes")
+def bench_devices(path: str, preset: str, counts: list[int], train_steps: int, rollout_batch: int,
+                  rollout_steps: int, repeats: int) -> dict:
+  """Training steps/s and rollout scenes/s on meshes of the first N devices
+  (N = 1 is the one-device code path, without a mesh)."""
+  from pcdiff_jax import distributed, evaluation, policy
+  from pcdiff_jax.config import MetricsConfig, get_config
+  from pcdiff_jax.data import womd
+  from pcdiff_jax.sim import env
+  from pcdiff_jax.training import data as data_lib
+  from pcdiff_jax.training import encoder_stage, trainer
+  cfg = get_config(preset)
+  state = womd.load(path)[0]
+  counts = [n for n in counts if n <= jax.device_count()]
+  mesh_of = lambda n: distributed.data_mesh(n) if n > 1 else None
+  # Training: the stage-1 step on the record at t = 10, tiled to the global batch (the
+  # preset's, rounded up to a multiple of the largest mesh).
+  batch_size = -(-cfg.encoder_train.batch_size // max(counts)) * max(counts)
+  one = jax.jit(lambda s: data_lib.example_at(s, 10, cfg.features, cfg.encoder.horizon))(state)
+  examples = jax.tree_util.tree_map(lambda a: np.repeat(np.asarray(a)[None], batch_size, 0), one)
+  params = jax.device_get(encoder_stage.init_params(cfg, examples, 0))
+  tx = trainer.make_optimizer(cfg.encoder_train)
+  train_rows = []
+  for n in counts:
+    mesh = mesh_of(n)
+    if mesh is not None and batch_size % n:
+      continue
+    step = trainer.make_train_step(encoder_stage.make_loss_fn(cfg), tx, mesh=mesh)
+    st = trainer.create_state(params, tx, 0)
+    st, batch = ((jax.device_put(st, jax.devices()[0]), jax.device_put(examples, jax.devices()[0]))
+                 if mesh is None else (distributed.replicate(st, mesh), distributed.shard_batch(examples, mesh)))
+    t0 = time.perf_counter()
+    st, _ = jax.block_until_ready(step(st, batch))
+    compile_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    for _ in range(train_steps):
+      st, metrics = step(st, batch)
+    jax.block_until_ready(metrics)
+    elapsed = time.perf_counter() - t0
+    train_rows.append({"devices": n, "global_batch": batch_size, "steps_per_s": train_steps / elapsed,
+                       "examples_per_s": train_steps * batch_size / elapsed, "first_step_s": compile_s})
+  # Closed loop: `rollout_batch` copies of the record per call, split over the devices.
+  metrics_cfg = MetricsConfig(max_reactive_agents=cfg.features.max_agents - 1)
+  model_cfg = evaluation.with_agent_cap(cfg, metrics_cfg)
+  models = _policy_models(env.reset(state), model_cfg)
+  actors = {"cv": (evaluation.METHODS["cv"](metrics_cfg.max_reactive_agents), None),
+            "pcdiff": (policy.actor(model_cfg, policy.PolicyConfig(ddim_steps=cfg.diffusion.ddim_steps)), models)}
+  scenes = jax.tree_util.tree_map(lambda a: np.repeat(np.asarray(a)[None], rollout_batch, 0), state)
+  rngs = jax.random.split(jax.random.PRNGKey(0), rollout_batch)
+  rollout_rows = []
+  for method, (actor, weights) in actors.items():
+    ecfg = evaluation.EvalConfig(method=method, num_steps=rollout_steps, metrics=metrics_cfg)
+    for n in counts:
+      mesh = mesh_of(n)
+      if mesh is not None and rollout_batch % n:
+        continue
+      run = evaluation.make_rollout_fn(actor, ecfg, mesh)
+      args = (scenes, rngs, weights) if mesh is None else (
+          *jax.device_put((scenes, rngs), distributed.batch_sharded(mesh)), distributed.replicate(weights, mesh))
+      t0 = time.perf_counter()
+      jax.block_until_ready(run(*args))
+      compile_s = time.perf_counter() - t0
+      seconds = float(np.median(_time(lambda: run(*args), repeats)))
+      rollout_rows.append({"method": method, "devices": n, "scenes_per_call": rollout_batch,
+                           "steps": rollout_steps, "scenes_per_s": rollout_batch / seconds,
+                           "scene_steps_per_s": rollout_batch * rollout_steps / seconds,
+                           "first_call_s": compile_s})
+  return {"preset": preset, "platform": jax.devices()[0].platform, "available_devices": jax.device_count(),
+          "train_encoder_step": train_rows, "closed_loop": rollout_rows}
+
+
+SECTIONS = ("parse", "rollout", "encoder", "policy", "guidance", "lanes", "devices")
 
 
 def main(argv=None) -> int:
@@ -311,14 +389,28 @@ def main(argv=None) -> int:
                  help="padded agent counts (SDC included) for the policy scaling")
   p.add_argument("--ddim-steps", type=int, nargs="+", default=[1, 5, 10, 25])
   p.add_argument("--policy-batch-sizes", type=int, nargs="+", default=[1, 4, 16])
-  p.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS)
+  p.add_argument("--device-counts", type=int, nargs="+", default=[1, 2, 4],
+                 help="devices: mesh sizes (on a CPU host, fake devices are made for the largest)")
+  p.add_argument("--device-train-steps", type=int, default=5, help="devices: timed training steps")
+  p.add_argument("--device-batch", type=int, default=4, help="devices: scenes per closed-loop call")
+  p.add_argument("--device-rollout-steps", type=int, default=80, help="devices: closed-loop steps")
+  p.add_argument("--sections", nargs="+", default=[s for s in SECTIONS if s != "devices"], choices=SECTIONS,
+                 help="default: all but devices")
   p.add_argument("--json", help="also write the results here")
   args = p.parse_args(argv)
   if not os.path.isfile(args.scenarios):
     p.error(f"--scenarios: file not found: {args.scenarios}")
-  for name in ("agents", "ddim_steps", "policy_batch_sizes", "batch_sizes"):
+  for name in ("agents", "ddim_steps", "policy_batch_sizes", "batch_sizes", "device_counts"):
     if min(getattr(args, name)) < 1:
       p.error(f"--{name.replace('_', '-')} values must be >= 1")
+  for name in ("device_train_steps", "device_batch", "device_rollout_steps"):
+    if getattr(args, name) < 1:
+      p.error(f"--{name.replace('_', '-')} must be >= 1")
+  if "devices" in args.sections:
+    try:   # fake CPU devices for the largest mesh; a GPU / TPU backend keeps its own
+      jax.config.update("jax_num_cpu_devices", max(args.device_counts))
+    except RuntimeError:   # JAX already started (bench called from Python): the devices it has
+      pass
   results = {"device": str(jax.devices()[0]), "cpu_count": os.cpu_count()}
   if "parse" in args.sections:
     results["parse"] = bench_parse(args.scenarios, args.parse_copies)
@@ -333,6 +425,10 @@ def main(argv=None) -> int:
     results["lane_inputs"] = bench_lane_inputs(args.scenarios, args.policy_preset, args.repeats)
   if "guidance" in args.sections:
     results["guidance"] = bench_guidance(args.scenarios, args.policy_preset, args.repeats)
+  if "devices" in args.sections:
+    results["devices"] = bench_devices(args.scenarios, args.policy_preset, args.device_counts,
+                                       args.device_train_steps, args.device_batch, args.device_rollout_steps,
+                                       args.repeats)
   print(json.dumps(results, indent=2))
   if args.json:
     with open(args.json, "w") as f:

@@ -6,6 +6,9 @@
   python -m experiments.rollout ... --method pcdiff --guidance adversarial --w-pursue 30 --eta 0.07
 
 Writes OUT/metrics.json, OUT/metrics.md, OUT/scenarios.jsonl and OUT/gifs/.
+Every device is used: each call's --batch-size x --num-rollouts rollouts are
+split over them (a multiple of the device count; --devices N takes the first N),
+with the one-device results.
 """
 from __future__ import annotations
 
@@ -23,7 +26,7 @@ def parse_args(argv=None) -> argparse.Namespace:
   p = argparse.ArgumentParser(prog="python -m experiments.rollout", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
   p.add_argument("--scenarios", required=True, nargs="+",
-                 help="TFRecord file(s) or glob(s) in the WOMD motion tf.Example schema")
+                 help="TFRecord file(s) or glob(s) of WOMD motion tf.Examples or Scenario protos")
   p.add_argument("--method", default="cv", choices=sorted(evaluation.METHODS) + list(evaluation.LEARNED))
   p.add_argument("--checkpoint", default=None,
                  help="training workdir of the learned methods (pcdiff, pcdiff-noprior, simpl-ar)")
@@ -83,7 +86,9 @@ def parse_args(argv=None) -> argparse.Namespace:
   g.add_argument("--score-adversary", action="store_true",
                  help="score the ego against the most threatening agent in non-adversarial runs too")
   p.add_argument("--no-progress", action="store_true", help="no progress bar")
+  _args.add_device_flags(p, hosts=False)
   args = p.parse_args(argv)
+  _args.check_device_flags(p, args)
   if args.method in evaluation.LEARNED and not args.checkpoint:
     p.error(f"--method {args.method} needs --checkpoint WORKDIR")
   for name in ("num_steps", "max_agents", "batch_size", "ddim_steps", "replan_every", "num_rollouts",
@@ -136,7 +141,8 @@ def main(argv=None) -> int:
                                   ibr_rounds=args.ibr_rounds, adversary=args.adversary,
                                   field_size=args.field_size))
   try:
-    summary = evaluation.evaluate(args.scenarios, args.out, cfg, progress=not args.no_progress)
+    mesh = _args.device_mesh(args)
+    summary = evaluation.evaluate(args.scenarios, args.out, cfg, progress=not args.no_progress, mesh=mesh)
   except (FileNotFoundError, ValueError, RuntimeError) as err:
     print(f"error: {err}", file=sys.stderr)
     return 2

@@ -7,6 +7,14 @@ by 'val', when such files exist). Examples are cached under WORKDIR/cache.
 Run the same command again after an interruption: it resumes from the last
 checkpoint in WORKDIR/<stage>/checkpoints. Scalars: WORKDIR/<stage>/tb
 (TensorBoard) and WORKDIR/<stage>/metrics.jsonl.
+
+Every device is used: the global --batch-size is split over a `data` mesh axis
+(a multiple of the device count; --devices N takes the first N). Several hosts:
+run the same command on each with --coordinator HOST:PORT --num-processes N
+--process-id I (or JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES, JAX_PROCESS_ID;
+--distributed lets JAX read them from SLURM / Open MPI / Cloud TPU); each host
+reads every N-th --data file from its own index, WORKDIR must be shared, and a
+run resumes on any device count.
 """
 from __future__ import annotations
 
@@ -43,11 +51,13 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="stage 2: the context-only ablation (no proposal tokens, N(0, I) start)")
   p.add_argument("--bfloat16", action="store_true", help="stage 2: denoiser matmuls in bfloat16")
   p.add_argument("--no-progress", action="store_true")
+  _args.add_device_flags(p)
   args = p.parse_args(argv)
   for name in ("steps", "batch_size", "limit"):
     v = getattr(args, name)
     if v is not None and v < 1:
       p.error(f"--{name.replace('_', '-')} must be >= 1")
+  _args.check_device_flags(p, args)
   return args
 
 
@@ -81,14 +91,38 @@ def resolve_config(args) -> config_lib.Config:
   return cfg
 
 
+def _mesh(args, cfg: config_lib.Config):
+  """The data mesh over --devices (None on a single device: the one-device
+  step, unchanged); ValueError when a trained stage's batch does not split."""
+  import jax
+
+  from pcdiff_jax import distributed
+  mesh = _args.device_mesh(args)
+  if mesh is None:
+    return None
+  stages = {"encoder": ("encoder",), "diffusion": ("diffusion",), "all": ("encoder", "diffusion")}
+  for stage in stages[args.stage]:
+    size = getattr(cfg, f"{stage}_train").batch_size
+    distributed.check_divisible(size, mesh, f"the {stage} batch size (--batch-size)")
+  print(f"data-parallel over {mesh.devices.size} device(s) ({jax.devices()[0].platform}), "
+        f"{jax.process_count()} process(es)")
+  return mesh
+
+
 def main(argv=None) -> int:
   args = parse_args(argv)
   _args.setup_logging()
+  import jax
+
+  from pcdiff_jax import distributed
   from pcdiff_jax.training import data as data_lib
   from pcdiff_jax.training import encoder_stage, trainer
   cfg = resolve_config(args)
   try:
+    mesh = _mesh(args, cfg)
     train_files = womd.expand_paths(args.data)
+    if jax.process_count() > 1:   # each host reads its own files
+      train_files = distributed.host_shard(train_files)
     val_files = _val_paths(args)
     cache = args.cache_dir or os.path.join(args.workdir, "cache")
     spec = encoder_stage.cache_spec(cfg)
@@ -107,12 +141,12 @@ def main(argv=None) -> int:
     results = {}
     if args.stage in ("encoder", "all"):
       state, metrics = encoder_stage.train(cfg, train, val, args.workdir, max_minutes=args.max_minutes,
-                                           progress=not args.no_progress)
+                                           progress=not args.no_progress, mesh=mesh)
       results["encoder"] = {"step": int(state.step), "val": metrics}
     if args.stage in ("diffusion", "all"):
       state, metrics = diffusion_stage.train(cfg, train, val, args.workdir,
                                              max_minutes=args.max_minutes,
-                                             progress=not args.no_progress)
+                                             progress=not args.no_progress, mesh=mesh)
       results["diffusion"] = {"step": int(state.step), "val": metrics}
   except (FileNotFoundError, ValueError, trainer.CheckpointMismatch) as err:
     print(f"error: {err}", file=sys.stderr)
@@ -120,6 +154,8 @@ def main(argv=None) -> int:
   except KeyboardInterrupt:
     return 130
   out = {"stage": args.stage, "config": args.config, **results}
+  if not distributed.is_primary():
+    return 0
   with open(os.path.join(args.workdir, f"{args.stage}_summary.json"), "w") as f:
     json.dump(out, f, indent=2)
   print(json.dumps(out, indent=2))

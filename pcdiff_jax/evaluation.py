@@ -17,8 +17,9 @@ from typing import Any, Callable, Optional, Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh
 
-from pcdiff_jax import baselines
+from pcdiff_jax import baselines, distributed
 from pcdiff_jax.baselines import idm
 from pcdiff_jax import metrics as metrics_lib
 from pcdiff_jax.config import MetricsConfig
@@ -142,18 +143,25 @@ def with_agent_cap(model_cfg, metrics: MetricsConfig):
   return dataclasses.replace(model_cfg, features=features)
 
 
-def make_rollout_fn(actor: Actor, cfg: EvalConfig):
+def make_rollout_fn(actor: Actor, cfg: EvalConfig, mesh: Optional[Mesh] = None):
   """jit(vmap) of reset -> closed-loop rollout, per scenario:
   (states (B,), rngs (B,), params) -> final states. The params (model weights)
-  are an argument, not a constant baked into the program."""
+  are an argument, not a constant baked into the program. With a `mesh`
+  (`pcdiff_jax.distributed.data_mesh`) the B scenarios are split along its
+  `data` axis (B a multiple of its devices) and the params replicated."""
   def one(state, rng, params):
     return env.rollout(env.reset(state, cfg.init_steps), actor, cfg.num_steps, rng,
                        params=params).final_state
-  return jax.jit(jax.vmap(one, in_axes=(0, 0, None)))
+  fn = jax.vmap(one, in_axes=(0, 0, None))
+  if mesh is None:
+    return jax.jit(fn)
+  data = distributed.batch_sharded(mesh)
+  return jax.jit(fn, in_shardings=(data, data, distributed.replicated(mesh)), out_shardings=data)
 
 
-def make_score_fn(cfg: EvalConfig):
-  """jit(vmap) of the scores of rolled-out states (B,) -> metrics.RolloutScores (B,)."""
+def make_score_fn(cfg: EvalConfig, mesh: Optional[Mesh] = None):
+  """jit(vmap) of the scores of rolled-out states (B,) -> metrics.RolloutScores (B,),
+  split over the `data` axis of `mesh` when one is given."""
   start = cfg.init_steps - 1
 
   def one(final_state):
@@ -163,7 +171,10 @@ def make_score_fn(cfg: EvalConfig):
       return scores
     return scores.replace(adversarial=metrics_lib.adversarial_scores(
         final_state, start, pursuer_at_start(final_state, cfg), cfg.metrics.max_road_edge_points))
-  return jax.jit(jax.vmap(one))
+  if mesh is None:
+    return jax.jit(jax.vmap(one))
+  data = distributed.batch_sharded(mesh)
+  return jax.jit(jax.vmap(one), in_shardings=data, out_shardings=data)
 
 
 def pursuer_at_start(final_state, cfg: EvalConfig) -> jax.Array:
@@ -241,16 +252,23 @@ def _mean_std(values) -> dict:
 
 
 def evaluate(scenarios: Sequence[str] | str, out_dir: str, cfg: EvalConfig,
-             progress: bool = True) -> dict:
+             progress: bool = True, mesh: Optional[Mesh] = None) -> dict:
   """Runs `cfg.method` over every scenario, `cfg.seeds` times with
-  `cfg.num_rollouts` rollouts each; returns and writes the summary."""
+  `cfg.num_rollouts` rollouts each; returns and writes the summary.
+  `mesh`: each call's batch_size x num_rollouts rollouts are split over its
+  devices (one process); the keys are drawn as on one device, so the results
+  are the one-device run's."""
   files = womd.expand_paths(scenarios)  # fail early, naming the missing path
-  actor, params = make_actor(cfg)
-  os.makedirs(out_dir, exist_ok=True)
-  run = make_rollout_fn(actor, cfg)
-  score = make_score_fn(cfg)
   n_roll = cfg.num_rollouts
   call_size = cfg.batch_size * n_roll
+  if mesh is not None:
+    distributed.check_divisible(call_size, mesh, "the rollouts per call (--batch-size x --num-rollouts)")
+  actor, params = make_actor(cfg)
+  os.makedirs(out_dir, exist_ok=True)
+  run = make_rollout_fn(actor, cfg, mesh)
+  score = make_score_fn(cfg, mesh)
+  if mesh is not None:
+    params = distributed.replicate(params, mesh)
   per_scenario_path = os.path.join(out_dir, "scenarios.jsonl")
   skipped: list[dict] = []
   per_seed: list[dict] = []
@@ -275,6 +293,8 @@ def evaluate(scenarios: Sequence[str] | str, out_dir: str, cfg: EvalConfig,
         try:
           tiled = jax.tree_util.tree_map(lambda a: jnp.repeat(a, n_roll, axis=0),
                                          pad_batch(state, cfg.batch_size))
+          if mesh is not None:
+            tiled, rngs = jax.device_put((tiled, rngs), distributed.batch_sharded(mesh))
           t0 = time.perf_counter()
           final = jax.block_until_ready(run(tiled, rngs, params))
           elapsed = time.perf_counter() - t0
@@ -344,6 +364,7 @@ def evaluate(scenarios: Sequence[str] | str, out_dir: str, cfg: EvalConfig,
       "skipped": skipped,
       "config": _config_record(cfg),
       "device": str(jax.devices()[0]),
+      "devices": 1 if mesh is None else int(mesh.devices.size),
   }
   with open(os.path.join(out_dir, "metrics.json"), "w") as f:
     json.dump(summary, f, indent=2)

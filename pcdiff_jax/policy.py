@@ -37,7 +37,7 @@ from pcdiff_jax.model import features as features_lib
 from pcdiff_jax.model import guidance as guidance_lib
 from pcdiff_jax.model import latent, planner
 from pcdiff_jax.model.planner import Models
-from pcdiff_jax.sim import dynamics, geometry
+from pcdiff_jax.sim import action_spaces, dynamics, geometry
 from pcdiff_jax.sim.actors import Actor, ActorOutput
 from pcdiff_jax.sim.datatypes import Action, Array, ObjectType, SimulatorState
 from pcdiff_jax.sim.road_field import RoadField
@@ -265,7 +265,9 @@ def ensemble_plans(previous: Array, previous_valid: Array, executed: Array, plan
 
 def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
   """The policy as an Actor (params = Models). One scenario per call: vmap
-  the rollout for batches."""
+  the rollout for batches. Its actions are our native [a, psi_dot]
+  (`action_space` "accel_yaw_rate", for `sim.dynamics.KinematicModel`); for
+  a Waymax environment use `waymax_actor`."""
   validate(cfg, policy)
 
   def init(rng, state):
@@ -305,6 +307,17 @@ def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
 
   name = "pcdiff" if policy.prior_init else "pcdiff-noprior"
   return Actor(select_action=select_action, init=init, name=name)
+
+
+def waymax_actor(cfg: Config, policy: PolicyConfig, dynamics_model) -> Actor:
+  """The policy as an actor for an environment stepping `dynamics_model`:
+  Waymax's `InvertibleBicycleModel` ([accel, curvature]), `DeltaLocal`,
+  `DeltaGlobal` (the model instance, or its space name "bicycle",
+  "delta_local", "delta_global"), or our `KinematicModel` / "accel_yaw_rate"
+  (then it is `actor`). Each step's planned action [a, psi_dot] is converted
+  from the pose it leads to (`sim.action_spaces`); no argument defaults, so
+  the action space is always chosen on purpose."""
+  return action_spaces.adapt(actor(cfg, policy), dynamics_model, cfg.kinematics)
 
 
 def validate(cfg: Config, policy: PolicyConfig) -> None:

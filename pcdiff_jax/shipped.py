@@ -20,11 +20,16 @@ _STAGES = ("encoder", "diffusion")
 
 def checkpoint_dir(name: str = DEFAULT_NAME) -> str:
   """The folder of a shipped model: `$PCDIFF_CHECKPOINTS/<name>` when that
-  variable is set, else `<repository>/checkpoints/<name>`."""
+  variable is set, else `<repository>/checkpoints/<name>` (a clone, an editable
+  install), else the copy an installed wheel carries, `pcdiff_jax/checkpoints/<name>`
+  (setup.py puts the default model there, and only that one)."""
   root = os.environ.get("PCDIFF_CHECKPOINTS")
-  if root is None:
-    root = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "checkpoints")
-  return os.path.join(root, name)
+  if root is not None:
+    return os.path.join(root, name)
+  package = os.path.dirname(os.path.abspath(__file__))
+  in_repository = os.path.join(os.path.dirname(package), "checkpoints", name)
+  in_wheel = os.path.join(package, "checkpoints", name)
+  return in_wheel if not os.path.isdir(in_repository) and os.path.isdir(in_wheel) else in_repository
 
 
 def pretrained(name: str = DEFAULT_NAME, stage: str = "diffusion", path: Optional[str] = None):
@@ -34,7 +39,8 @@ def pretrained(name: str = DEFAULT_NAME, stage: str = "diffusion", path: Optiona
   from pcdiff_jax.training import diffusion_stage, encoder_stage
   folder = path or checkpoint_dir(name)
   if not os.path.isdir(folder):
-    raise FileNotFoundError(f"no shipped model at {folder} (set PCDIFF_CHECKPOINTS or pass path=)")
+    raise FileNotFoundError(f"no shipped model at {folder} (set PCDIFF_CHECKPOINTS or pass path=; an "
+                            f"installed wheel carries only {DEFAULT_NAME})")
   if stage == "encoder":
     return encoder_stage.load(folder)
   if stage != "diffusion":

@@ -97,6 +97,11 @@ def make_scene(num_objects: int = 4, num_steps: int = 31, speeds=(10.0, 8.0, 0.0
 def tiny_models():
   """Untrained tiny models with a latent fitted on make_scene (weights do not
   matter where this is used)."""
+  return build_tiny_models()
+
+
+def build_tiny_models():
+  """The `tiny_models` fixture's value (also for code run outside pytest)."""
   from pcdiff_jax.config import get_config
   from pcdiff_jax.model import denoiser as denoiser_lib
   from pcdiff_jax.model import encoder, planner

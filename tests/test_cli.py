@@ -45,12 +45,13 @@ def test_rollout_cli_bad_arguments(tmp_path, capsys):
 
 
 CLIS = ("bench", "demo", "diagnose", "export", "family_table", "finetune", "guidance_figure", "latent_report",
-        "make_data", "open_loop", "rollout", "train")
+        "make_data", "open_loop", "rollout", "train", "wosac")
 # Each CLI's output option, given a path that cannot be written as asked.
 BAD_OUTPUTS = {"demo": ("--out", "file"), "diagnose": ("--out", "folder"), "export": ("--out", "file"),
                "finetune": ("--workdir", "file"), "guidance_figure": ("--out", "file"),
                "latent_report": ("--out", "file"), "make_data": ("--out", "below-file"),
-               "open_loop": ("--out", "file"), "rollout": ("--out", "file"), "train": ("--workdir", "file")}
+               "open_loop": ("--out", "file"), "rollout": ("--out", "file"), "train": ("--workdir", "file"),
+               "wosac": ("--out", "folder")}
 
 
 @pytest.mark.parametrize("name", CLIS)

@@ -11,14 +11,14 @@ PACKAGE = ROOT / "pcdiff_jax"
 
 # Lowest first; a module's layer is that of its longest matching prefix.
 LAYERS = [
-    ("pcdiff_jax.config",),
+    ("pcdiff_jax.config", "pcdiff_jax.distributed"),   # distributed: meshes and hosts (jax only)
     ("pcdiff_jax.sim",),
     ("pcdiff_jax.data", "pcdiff_jax.viz"),
     ("pcdiff_jax.model", "pcdiff_jax.metrics"),
     ("pcdiff_jax.training",),                  # the two training stages and their parts
     ("pcdiff_jax.policy",),
     ("pcdiff_jax.baselines",),
-    ("pcdiff_jax.evaluation",),
+    ("pcdiff_jax.evaluation", "pcdiff_jax.wosac"),   # wosac: every sim agent, 32 rollouts, submissions
     ("pcdiff_jax.training.closed_loop", "pcdiff_jax.shipped"),  # on-policy rounds roll policies out
     ("pcdiff_jax",),                           # the package's one-call loader
 ]

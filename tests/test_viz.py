@@ -18,8 +18,9 @@ def state():
   if not RECORD.exists():
     pytest.skip(f"WOMD example record not found at {RECORD}")
   from pcdiff_jax.data import womd
+  from pcdiff_jax.sim import env
   state, _ = womd.load(str(RECORD))
-  return state
+  return env.reset(state)   # a loaded state has only t = 0 simulated (Waymax's loader)
 
 
 def _with_map_features(state):

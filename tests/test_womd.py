@@ -28,11 +28,23 @@ def test_real_record_values(real_state, raw_example):
   assert int(s.object_metadata.sdc_index) == int(np.argmax(raw["state/is_sdc"])) == 8
   valid = _raw_time(raw, "valid").astype(bool)
   np.testing.assert_array_equal(np.asarray(s.log_trajectory.valid), valid)
-  # Exact positions, velocities, yaws (float32 as stored).
+  # Exact positions, velocities (float32 as stored).
   for ours, theirs in [("x", "x"), ("y", "y"), ("z", "z"), ("vel_x", "velocity_x"),
-                       ("vel_y", "velocity_y"), ("yaw", "bbox_yaw")]:
+                       ("vel_y", "velocity_y")]:
     np.testing.assert_array_equal(np.asarray(getattr(s.log_trajectory, ours)),
                                   _raw_time(raw, theirs, np.float32), err_msg=ours)
+  # Yaw: wrapped into [-pi, pi) as Waymax's loader does (the record stores
+  # 1406 valid entries unwrapped along time); else the stored value.
+  yaw, stored = np.asarray(s.log_trajectory.yaw), _raw_time(raw, "bbox_yaw", np.float32)
+  assert yaw.min() >= -np.pi and yaw.max() < np.pi
+  turns = np.round((stored.astype(np.float64) - yaw) / (2 * np.pi))
+  np.testing.assert_allclose(yaw + 2 * np.pi * turns, stored, atol=1e-6)
+  assert int((turns[valid] != 0).sum()) == 1406
+  # Waymax's loader: sim is the log at t = 0 only, zeros and invalid after.
+  for field in ("x", "yaw", "valid", "timestamp_micros"):
+    sim, log = np.asarray(getattr(s.sim_trajectory, field)), np.asarray(getattr(s.log_trajectory, field))
+    np.testing.assert_array_equal(sim[:, 0], log[:, 0], err_msg=field)
+    assert not sim[:, 1:].any(), field
   assert float(s.log_trajectory.x[8, 10]) == pytest.approx(float(raw["state/current/x"][8]))
   # Sizes: mean over valid steps (Waymax), constant over time.
   length = _raw_time(raw, "length")

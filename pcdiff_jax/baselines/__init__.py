@@ -1,2 +1,2 @@
 """Baseline actors (Waymax actor contract)."""
-from pcdiff_jax.baselines.simple import constant_velocity, expert, log_replay, reactive_agents
+from pcdiff_jax.baselines.simple import constant_velocity, expert, log_replay, reactive_agents, waymax_actor

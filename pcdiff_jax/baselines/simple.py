@@ -5,6 +5,7 @@ from typing import Any, Callable
 
 import jax.numpy as jnp
 
+from pcdiff_jax.sim import action_spaces
 from pcdiff_jax.sim.actors import Actor, ActorOutput
 from pcdiff_jax.sim.datatypes import Action, SimulatorState, slice_time
 from pcdiff_jax.sim.dynamics import KinematicModel
@@ -59,7 +60,8 @@ def expert(dynamics: Any = KinematicModel(), controlled_fn: ControlledFn = react
     data = jnp.where(target.valid & alive, action.data, 0.0)
     return ActorOutput(actor_state=actor_state, action=Action(data=data, valid=alive),
                        is_controlled=actor_state)
-  return Actor(select_action=select_action, init=_fixed_set(controlled_fn), name="expert")
+  return Actor(select_action=select_action, init=_fixed_set(controlled_fn), name="expert",
+               action_space=getattr(dynamics, "action_space", action_spaces.NATIVE))
 
 
 def constant_velocity(controlled_fn: ControlledFn = reactive_agents()) -> Actor:
@@ -76,3 +78,11 @@ def constant_velocity(controlled_fn: ControlledFn = reactive_agents()) -> Actor:
                     valid=state.current_sim_trajectory.valid & controlled[..., None])
     return ActorOutput(actor_state=actor_state, action=action, is_controlled=controlled)
   return Actor(select_action=select_action, init=_fixed_set(controlled_fn), name="cv")
+
+
+def waymax_actor(actor: Actor, dynamics_model: Any) -> Actor:
+  """A baseline (native [a, psi_dot] actions: cv, idm, simpl_ar, expert with
+  our KinematicModel) for an environment stepping `dynamics_model`: Waymax's
+  InvertibleBicycleModel, DeltaLocal or DeltaGlobal, or their space names
+  (`sim.action_spaces.adapt`)."""
+  return action_spaces.adapt(actor, dynamics_model)

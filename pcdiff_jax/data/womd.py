@@ -11,6 +11,10 @@ simulation). Everything is padded to fixed sizes so batches never recompile.
 Bad input raises `WomdFormatError` naming the file, record index and field;
 `iterate(..., on_error="skip")` logs a warning and skips such a record instead
 (a corrupt or truncated file is skipped from the corrupt record on).
+
+Files of WOMD's `scenario/` flavour (serialized `Scenario` protos) read into
+the same states (`scenario_proto`); each file's flavour is read from its first
+record (`record_format="auto"`) or forced with `record_format`.
 """
 from __future__ import annotations
 
@@ -100,6 +104,7 @@ class LoaderConfig:
   max_num_traffic_lights: int = 16
   num_past: int = NUM_PAST
   num_future: int = NUM_FUTURE
+  history_only: bool = False   # drop every step after the current one (as in the test split)
 
 
 # --------------------------------------------------------------------------
@@ -231,6 +236,9 @@ def example_to_numpy_state(ex: dict, path: str, index: int, cfg: LoaderConfig) -
     raise WomdFormatError(path, index, "state/id", "required feature is missing or empty")
   meta = {k: _check_length(ex, f"state/{k}", num_obj, path, index) for k in OBJECT_FEATURES}
   traj = _object_traj(ex, num_obj, cfg, path, index)
+  if cfg.history_only:  # the converter's fill value after the current step
+    traj = {k: np.concatenate([v[:, :cfg.num_past + 1], np.full_like(v[:, cfg.num_past + 1:], 0 if k == "valid" else -1)], 1)
+            for k, v in traj.items()}
   valid = traj["valid"] == 1
   for field in ("x", "y", "z", "vel_x", "vel_y", "yaw", "length", "width", "height"):
     _check_finite(traj[field], valid, f"state/*/{field}", path, index)
@@ -266,6 +274,9 @@ def example_to_numpy_state(ex: dict, path: str, index: int, cfg: LoaderConfig) -
     return _pad(np.asarray(a)[keep].astype(dtype), n_pad, 0, pad_value)
 
   trajectory = {f: obj(traj[f], -1.0, np.float32) for f in ("x", "y", "z", "vel_x", "vel_y", "yaw")}
+  # Waymax's loader wraps the stored yaw (WOMD stores some unwrapped along
+  # time) into [-pi, pi): the same float32 arithmetic, so values are equal.
+  trajectory["yaw"] = wrap_yaw(trajectory["yaw"])
   trajectory.update({f: obj(sizes[f], -1.0, np.float32) for f in sizes})
   trajectory["valid"] = obj(valid, False, bool)
   trajectory["timestamp_micros"] = obj(traj["timestamp_micros"], -1, np.int32)
@@ -313,6 +324,9 @@ def example_to_numpy_state(ex: dict, path: str, index: int, cfg: LoaderConfig) -
 
   # Traffic lights.
   tl = _traffic_lights(ex, cfg, path, index)
+  if cfg.history_only:
+    tl = {k: np.concatenate([v[:, :cfg.num_past + 1], np.full_like(v[:, cfg.num_past + 1:], 0 if k == "valid" else -1)], 1)
+          for k, v in tl.items()}
   tl_valid = tl["valid"] == 1
   _check_finite(np.stack([tl["x"], tl["y"], tl["z"]]), tl_valid[None], "traffic_light_state/*/xyz", path, index)
   num_lights = tl["state"].shape[0]
@@ -334,17 +348,30 @@ def example_to_numpy_state(ex: dict, path: str, index: int, cfg: LoaderConfig) -
           "lights": lights}, scenario_id
 
 
+def wrap_yaw(yaw: np.ndarray) -> np.ndarray:
+  """float32 yaw wrapped into [-pi, pi) (as Waymax's loader does)."""
+  yaw = np.asarray(yaw, np.float32)
+  pi = np.float32(np.pi)
+  return ((yaw + pi) % np.float32(2 * np.pi) - pi).astype(np.float32)
+
+
 def numpy_to_state(arrays: dict, to_jax: bool = True) -> SimulatorState:
   """Nested numpy dict (optionally with a leading batch dim) -> SimulatorState.
 
-  timestep = 0 and sim == log, as Waymax's loader returns them.
+  As Waymax's loader returns it: timestep = 0, and the sim trajectory is the
+  log at t = 0 only, zeros and invalid after (`sim.reset` then fills the
+  history up to the current step). Code that reads a loaded state at a later
+  step reads its log (e.g. `training.data.example_at`) or resets it first.
   """
   import jax.numpy as jnp
   conv = jnp.asarray if to_jax else np.asarray
-  traj = Trajectory(**{k: conv(v) for k, v in arrays["trajectory"].items()})
-  batch = arrays["trajectory"]["x"].shape[:-2]
+  log = arrays["trajectory"]
+  first = np.arange(log["x"].shape[-1]) == 0                                  # (T,)
+  sim = {k: np.where(first, v, np.zeros((), v.dtype)) for k, v in log.items()}
+  traj = Trajectory(**{k: conv(v) for k, v in log.items()})
+  batch = log["x"].shape[:-2]
   state = SimulatorState(
-      sim_trajectory=traj,
+      sim_trajectory=Trajectory(**{k: conv(v) for k, v in sim.items()}),
       log_trajectory=traj,
       log_traffic_light=TrafficLights(**{k: conv(v) for k, v in arrays["lights"].items()}),
       object_metadata=ObjectMetadata(**{k: conv(v) for k, v in arrays["metadata"].items()}),
@@ -390,19 +417,60 @@ def _records_one_by_one(path: str, start: int, err) -> Iterator[tuple[int, list[
     index += 1
 
 
+RECORD_FORMATS = ("auto", "tf_example", "scenario")
+
+
+def detect_format(raw: bytes, path: str = "<bytes>", index: int = 0) -> str:
+  """'tf_example' or 'scenario': the WOMD flavour of one serialized record."""
+  tf = _tf()
+  try:
+    example = tf.train.Example.FromString(raw)
+    if any(k == "scenario/id" or k.startswith("state/") for k in example.features.feature):
+      return "tf_example"
+  except Exception:  # not an Example: try a Scenario
+    pass
+  from pcdiff_jax.data import scenario_proto
+  if scenario_proto.is_scenario(raw):
+    return "scenario"
+  raise WomdFormatError(path, index, None, "neither a WOMD motion tf.Example nor a WOMD Scenario proto")
+
+
+def _parse_scenarios(raw: Sequence[bytes], path: str, first_index: int, cfg: LoaderConfig) -> list:
+  """Scenario protos -> the per-record dicts `_parse_raw` gives (errors in place)."""
+  from pcdiff_jax.data import scenario_proto
+  out = []
+  for i, r in enumerate(raw):
+    try:
+      out.append(scenario_proto.scenario_to_example(
+          r, num_past=cfg.num_past, num_future=cfg.num_future, max_objects=cfg.max_num_objects,
+          max_lights=cfg.max_num_traffic_lights))
+    except scenario_proto.ScenarioFormatError as err:
+      out.append(WomdFormatError(path, first_index + i, err.field, str(err)))
+  return out
+
+
 def iterate_numpy(paths, cfg: LoaderConfig = LoaderConfig(), on_error: str = "raise",
-                  chunk: int = 32, skipped: Optional[list] = None) -> Iterator[tuple[dict, ScenarioMeta]]:
+                  chunk: int = 32, skipped: Optional[list] = None,
+                  record_format: str = "auto") -> Iterator[tuple[dict, ScenarioMeta]]:
   """Yields (numpy arrays, ScenarioMeta) for each record of `paths`, in order.
 
   With on_error='skip', each skipped record's WomdFormatError is logged and
-  appended to `skipped` (when given).
+  appended to `skipped` (when given). record_format: 'auto' (each file's
+  first record decides), 'tf_example' or 'scenario'.
   """
   if on_error not in ("raise", "skip"):
     raise ValueError(f"on_error must be 'raise' or 'skip', got {on_error!r}")
+  if record_format not in RECORD_FORMATS:
+    raise ValueError(f"record_format must be one of {RECORD_FORMATS}, got {record_format!r}")
   for path in expand_paths(paths):
+    kind = None if record_format == "auto" else record_format
     try:
       for first, raw in _records(path, chunk):
-        for i, ex in enumerate(_parse_raw(raw, path, first) if raw else []):
+        if raw and kind is None:
+          kind = detect_format(raw[0], path, first)
+        parsed = (_parse_scenarios(raw, path, first, cfg) if kind == "scenario"
+                  else _parse_raw(raw, path, first) if raw else [])
+        for i, ex in enumerate(parsed):
           index = first + i
           try:
             if isinstance(ex, WomdFormatError):
@@ -433,7 +501,8 @@ def iterate(paths, batch_size: Optional[int] = None, max_num_objects: int = 128,
             max_num_rg_points: int = 30000, max_num_traffic_lights: int = 16,
             on_error: str = "raise", with_meta: bool = False, drop_remainder: bool = False,
             to_jax: bool = True, skipped: Optional[list] = None,
-            max_scenarios: Optional[int] = None) -> Iterator:
+            max_scenarios: Optional[int] = None, record_format: str = "auto",
+            history_only: bool = False) -> Iterator:
   """Reads WOMD motion TFRecords into padded `SimulatorState`s.
 
   Args:
@@ -446,12 +515,17 @@ def iterate(paths, batch_size: Optional[int] = None, max_num_objects: int = 128,
     with_meta: also yield a `ScenarioMeta` (scenario ids, file, record index).
     skipped: a list that collects the errors of skipped records.
     max_scenarios: stop after this many scenarios (None: all).
+    record_format: 'auto' (tf.Example or Scenario proto, from each file's
+      first record), 'tf_example' or 'scenario'.
+    history_only: keep only the steps up to the current one (the rest
+      invalid, -1), as in WOMD's test split: for simulations that must not see
+      the logged future (box sizes are then the mean over the history).
   Yields:
     SimulatorState, or (SimulatorState, ScenarioMeta) when with_meta.
   """
   cfg = LoaderConfig(max_num_objects=max_num_objects, max_num_rg_points=max_num_rg_points,
-                     max_num_traffic_lights=max_num_traffic_lights)
-  source = iterate_numpy(paths, cfg, on_error=on_error, skipped=skipped)
+                     max_num_traffic_lights=max_num_traffic_lights, history_only=history_only)
+  source = iterate_numpy(paths, cfg, on_error=on_error, skipped=skipped, record_format=record_format)
   if max_scenarios is not None:
     source = itertools.islice(source, max_scenarios)
   if batch_size is None:
@@ -561,18 +635,27 @@ def state_to_example(state: SimulatorState, scenario_id: str, trajectory: str = 
   return tf.train.Example(features=tf.train.Features(feature=feature))
 
 
-def write(path: str, items: Iterable[tuple[SimulatorState, str]], trajectory: str = "log") -> int:
+def write(path: str, items: Iterable[tuple[SimulatorState, str]], trajectory: str = "log",
+          record_format: str = "tf_example") -> int:
   """Writes (state, scenario_id) pairs to a TFRecord; returns the count.
+  record_format: 'tf_example' (WOMD motion tf.Examples) or 'scenario'
+  (Scenario protos, `scenario_proto.state_to_scenario`).
 
   Writes to `path + '.tmp'` and renames at the end, so an interrupted write
   never leaves a truncated file under the final name.
   """
   tf = _tf()
+  if record_format not in ("tf_example", "scenario"):
+    raise ValueError(f"record_format must be 'tf_example' or 'scenario', got {record_format!r}")
+  if record_format == "scenario":
+    from pcdiff_jax.data.scenario_proto import state_to_scenario as encode
+  else:
+    encode = state_to_example
   tmp = f"{path}.tmp"
   count = 0
   with tf.io.TFRecordWriter(tmp) as writer:
     for state, scenario_id in items:
-      writer.write(state_to_example(state, scenario_id, trajectory=trajectory).SerializeToString(deterministic=True))
+      writer.write(encode(state, scenario_id, trajectory=trajectory).SerializeToString(deterministic=True))
       count += 1
   os.replace(tmp, path)
   return count

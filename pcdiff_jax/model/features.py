@@ -44,7 +44,7 @@ from flax import struct
 
 from pcdiff_jax.config import FeaturesConfig
 from pcdiff_jax.sim import geometry
-from pcdiff_jax.sim.datatypes import Array, ObjectType, SimulatorState, is_lane_center
+from pcdiff_jax.sim.datatypes import Array, ObjectType, SimulatorState, current_traffic_lights, is_lane_center
 
 # Channels of `SceneFeatures.agent_history`, in order.
 AGENT_CHANNELS = ("x", "y", "dx", "dy", "cos_yaw", "sin_yaw", "vel_x", "vel_y",
@@ -406,7 +406,7 @@ def _map_features(state: SimulatorState, config: FeaturesConfig, scene_xy: Array
 
   types = rg.types[fp]
   ids = rg.ids[fp]
-  lights = state.current_traffic_light                                    # (L, 1)
+  lights = current_traffic_lights(state)                                  # (L, 1)
   match = ((ids[:, None] == lights.lane_ids[None, :, 0]) & lights.valid[None, :, 0]
            & is_lane_center(types)[:, None])                              # (M, L)
   light_state = lights.state[jnp.argmax(match, axis=1), 0]

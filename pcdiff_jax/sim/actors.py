@@ -30,10 +30,17 @@ def _no_state(rng, state):
 
 @dataclasses.dataclass(frozen=True)
 class Actor:
-  """A pure actor: two functions and a name (Waymax's WaymaxActorCore)."""
+  """A pure actor: two functions and a name (Waymax's WaymaxActorCore).
+
+  action_space: what its actions mean. Every actor of this package emits
+  "accel_yaw_rate", [a, psi_dot] for `dynamics.KinematicModel` (our native
+  space); `sim.action_spaces.adapt` turns one into another space (Waymax's
+  bicycle or delta models). `env.rollout` refuses an actor whose space is
+  not its dynamics model's."""
   select_action: Callable[[Any, SimulatorState, Any, Array], ActorOutput]
   init: Callable[[Array, SimulatorState], Any] = _no_state
   name: str = "actor"
+  action_space: str = "accel_yaw_rate"
 
 
 def merge_outputs(outputs: Sequence[ActorOutput]) -> ActorOutput:
@@ -63,4 +70,7 @@ def combine(actors: Sequence[Actor], name: str = "combined") -> Actor:
     outs = [a.select_action(p, state, s, rng) for a, p, s in zip(actors, params, actor_state)]
     return merge_outputs(outs)
 
-  return Actor(select_action=select_action, init=init, name=name)
+  spaces = {a.action_space for a in actors}
+  if len(spaces) > 1:
+    raise ValueError(f"actors emit different action spaces {sorted(spaces)}: adapt them to one")
+  return Actor(select_action=select_action, init=init, name=name, action_space=spaces.pop())

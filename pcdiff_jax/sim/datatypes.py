@@ -5,6 +5,16 @@ Field names, shapes, dtypes and meanings follow Waymax so that a Waymax
 class is a frozen `flax.struct` pytree, accepts any leading batch dims, and
 carries an explicit `valid` mask. Shapes use O objects, T timesteps, P
 roadgraph points, L traffic lights, D action features.
+
+Library code reads a state only through Waymax's own surface (the fields and
+the properties Waymax's classes have: `shape`, `num_objects`, `xy`, `speed`,
+`current_sim_trajectory`, ...), so that a real Waymax state works wherever
+ours does (tests/test_waymax_surface.py checks it on classes with exactly
+that surface). What Waymax's classes lack is a module-level function here
+taking the state (`current_traffic_lights`, `sdc_index`, `num_timesteps`);
+the properties of the same meaning on our classes (`current_traffic_light`,
+`ObjectMetadata.sdc_index`, `total_timesteps`) are conveniences for users
+of our classes only.
 """
 from __future__ import annotations
 
@@ -196,13 +206,19 @@ class ObjectMetadata:
   is_controlled: Array
 
   @property
+  def shape(self) -> tuple[int, ...]:
+    """(..., O)."""
+    return tuple(self.ids.shape)
+
+  @property
   def num_objects(self) -> int:
     return self.ids.shape[-1]
 
   @property
   def sdc_index(self) -> Array:
-    """(...,) index of the SDC (0 if none is marked)."""
-    return jnp.argmax(self.is_sdc, axis=-1)
+    """(...,) index of the SDC (0 if none is marked). Not on Waymax's class:
+    library code calls the module-level `sdc_index(metadata)`."""
+    return sdc_index(self)
 
   def validate(self) -> None:
     fields = {k: getattr(self, k) for k in (
@@ -236,6 +252,11 @@ class RoadgraphPoints:
   types: Array
   ids: Array
   valid: Array
+
+  @property
+  def shape(self) -> tuple[int, ...]:
+    """(..., P)."""
+    return tuple(self.x.shape)
 
   @property
   def num_points(self) -> int:
@@ -394,11 +415,12 @@ class SimulatorState:
 
   @property
   def total_timesteps(self) -> int:
-    return self.log_trajectory.num_timesteps
+    """T. Not on Waymax's class: library code calls `num_timesteps(state)`."""
+    return num_timesteps(self)
 
   @property
   def remaining_timesteps(self) -> Array:
-    return self.total_timesteps - 1 - self.timestep
+    return num_timesteps(self) - 1 - self.timestep
 
   @property
   def is_done(self) -> Array:
@@ -416,8 +438,9 @@ class SimulatorState:
 
   @property
   def current_traffic_light(self) -> TrafficLights:
-    """(..., L, 1) the logged lights at `timestep`."""
-    return slice_time(self.log_traffic_light, self.timestep)
+    """(..., L, 1) the logged lights at `timestep`. Not on Waymax's class:
+    library code calls `current_traffic_lights(state)`."""
+    return current_traffic_lights(self)
 
   def validate(self) -> None:
     self.sim_trajectory.validate()
@@ -440,3 +463,23 @@ class SimulatorState:
         self.log_traffic_light.num_timesteps != self.total_timesteps):
       raise ValueError(f"log_traffic_light has shape {self.log_traffic_light.shape}, expected "
                        f"{batch} + (L, {self.total_timesteps})")
+
+
+# ----------------------------------------------------------------------------
+# What Waymax's classes do not have, as functions of any state with Waymax's
+# surface (ours or Waymax's own).
+
+
+def sdc_index(metadata: ObjectMetadata) -> Array:
+  """(...,) int32 slot of the SDC in an ObjectMetadata (0 if none is marked)."""
+  return jnp.argmax(metadata.is_sdc, axis=-1).astype(jnp.int32)
+
+
+def num_timesteps(state: SimulatorState) -> int:
+  """T, the number of steps of the log (static)."""
+  return state.log_trajectory.num_timesteps
+
+
+def current_traffic_lights(state: SimulatorState) -> TrafficLights:
+  """(..., L, 1) the logged traffic lights at `state.timestep`."""
+  return slice_time(state.log_traffic_light, state.timestep)

@@ -18,6 +18,7 @@ D = 2) and `StateDynamics` (Waymax's next-state action, D = 5).
 from __future__ import annotations
 
 import dataclasses
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -171,6 +172,7 @@ class KinematicModel:
   """The paper's f as a simulator dynamics model; action [a, psi_dot]."""
   config: KinematicsConfig = KinematicsConfig()
   action_dim: int = 2
+  action_space: ClassVar[str] = "accel_yaw_rate"
 
   def forward(self, current: Trajectory, action: Action) -> Trajectory:
     """current (..., O, 1), action (..., O, 2) -> next (..., O, 1)."""
@@ -196,6 +198,7 @@ class BicycleModel:
   max_accel: float = 6.0
   max_curvature: float = 0.3
   action_dim: int = 2
+  action_space: ClassVar[str] = "bicycle"
 
   def forward(self, current: Trajectory, action: Action) -> Trajectory:
     accel = jnp.clip(action.data[..., 0:1], -self.max_accel, self.max_accel)
@@ -220,6 +223,7 @@ class BicycleModel:
 class StateDynamics:
   """Waymax's state dynamics: the action is the next [x, y, yaw, vel_x, vel_y]."""
   action_dim: int = 5
+  action_space: ClassVar[str] = "state"
 
   def forward(self, current: Trajectory, action: Action) -> Trajectory:
     d = action.data[..., None, :]                                 # (..., O, 1, 5)

@@ -12,7 +12,8 @@ import jax.numpy as jnp
 from flax import struct
 
 from pcdiff_jax.sim.actors import Actor
-from pcdiff_jax.sim.datatypes import Action, Array, SimulatorState, Trajectory, slice_time, update_time
+from pcdiff_jax.sim.datatypes import (Action, Array, SimulatorState, Trajectory, num_timesteps, slice_time,
+                                      update_time)
 from pcdiff_jax.sim.dynamics import KinematicModel
 
 DEFAULT_DYNAMICS = KinematicModel()
@@ -23,13 +24,15 @@ def reset(state: SimulatorState, init_steps: int = WOMD_INIT_STEPS) -> Simulator
   """Prepares a loaded state for simulation, as Waymax's `env.reset`.
 
   timestep = init_steps - 1 (10 for WOMD: the current step); the sim
-  trajectory equals the log up to it and is invalid (zeros) after it.
+  trajectory equals the log up to it and, after it, is invalid with -1 in
+  every float field and timestamp (Waymax's fill).
   """
-  num_t = state.total_timesteps
+  num_t = num_timesteps(state)
   if not 0 < init_steps <= num_t:
     raise ValueError(f"init_steps={init_steps} must be in [1, {num_t}]")
   keep = jnp.arange(num_t) < init_steps                      # (T,)
-  sim = jax.tree_util.tree_map(lambda x: jnp.where(keep, x, jnp.zeros_like(x)), state.log_trajectory)
+  fill = lambda x: jnp.zeros_like(x) if x.dtype == jnp.bool_ else jnp.full_like(x, -1)
+  sim = jax.tree_util.tree_map(lambda x: jnp.where(keep, x, fill(x)), state.log_trajectory)
   return state.replace(sim_trajectory=sim,
                        timestep=jnp.full(state.shape, init_steps - 1, jnp.int32))
 
@@ -49,6 +52,10 @@ def step(state: SimulatorState, action: Action, controlled: Array,
   Returns: the state at timestep + 1. Stepping past the last step is the
     caller's error (the scan lengths guard it).
   """
+  dim = getattr(dynamics, "action_dim", None)
+  if dim is not None and action.data.shape[-1] != dim:
+    raise ValueError(f"action.data has shape {tuple(action.data.shape)}: {type(dynamics).__name__} takes "
+                     f"{dim} numbers per object ({getattr(dynamics, 'action_space', '?')})")
   current = state.current_sim_trajectory                       # (..., O, 1)
   log_next = slice_time(state.log_trajectory, state.timestep + 1)
   moved = dynamics.forward(current, action)
@@ -92,6 +99,10 @@ def rollout(state: SimulatorState, actor: Actor, num_steps: int, rng: Array,
   key for step k is `fold_in(rng, k)`, so results do not depend on how the
   loop is split.
   """
+  space = getattr(dynamics, "action_space", None)
+  if space is not None and actor.action_space != space:
+    raise ValueError(f"actor {actor.name!r} emits {actor.action_space!r} actions but the dynamics model "
+                     f"{type(dynamics).__name__} takes {space!r} ones (sim.action_spaces.adapt converts)")
   if actor_state is None:
     actor_state = actor.init(rng, state)
 

@@ -92,8 +92,10 @@ def targets_at(state: SimulatorState, feats: SceneFeatures, horizon: int) -> Tar
 
 
 def example_at(state: SimulatorState, step: int, config: FeaturesConfig, horizon: int) -> Example:
-  """One scene's Example at replanning step `step` (the sim trajectory is the log)."""
-  state = state.replace(timestep=jnp.asarray(step, jnp.int32))
+  """One scene's Example of the log at replanning step `step`: the state is
+  read with its sim trajectory set to the log (a loaded state, as Waymax's,
+  has only t = 0 simulated)."""
+  state = state.replace(sim_trajectory=state.log_trajectory, timestep=jnp.asarray(step, jnp.int32))
   feats = features_lib.scene_features(state, config)
   return Example(feats=feats, targets=targets_at(state, feats, horizon))
 

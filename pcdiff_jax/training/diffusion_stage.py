@@ -26,8 +26,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jax.sharding import Mesh
 
 from pcdiff_jax import config as config_lib
+from pcdiff_jax import distributed
 from pcdiff_jax.config import Config
 from pcdiff_jax.model import denoiser as denoiser_lib
 from pcdiff_jax.model import diffusion, encoder, latent, planner
@@ -200,8 +202,13 @@ def full_future_examples(examples: Example) -> Example:
 
 
 def train(cfg: Config, train_examples: Example, val_examples: Optional[Example], workdir: str,
-          max_minutes: Optional[float] = None, progress: bool = True):
-  """Trains (or resumes) stage 2 in WORKDIR/diffusion. Returns (state, val metrics)."""
+          max_minutes: Optional[float] = None, progress: bool = True, mesh: Optional[Mesh] = None):
+  """Trains (or resumes) stage 2 in WORKDIR/diffusion. Returns (state, val metrics).
+
+  mesh: data-parallel over its devices (`pcdiff_jax.distributed`); then
+  `train_examples` are this host's and it feeds its share of each global batch
+  (the latent is fitted on each host's examples and process 0's fit is kept).
+  """
   tc = cfg.diffusion_train
   folder = os.path.join(workdir, stage_dir(cfg.diffusion.denoiser.use_prior))
   enc_params, _ = encoder_stage.load(workdir)
@@ -226,17 +233,18 @@ def train(cfg: Config, train_examples: Example, val_examples: Optional[Example],
     rng, k_perturb = jax.random.split(rng)
     batch = perturb.perturb(batch, k_perturb, tc.perturb, cfg.kinematics.dt)
     return diffusion_loss(params, extra, batch, rng, cfg)
-  step_fn = trainer.make_train_step(loss_fn, tx, with_extra=True)
+  step_fn = trainer.make_train_step(loss_fn, tx, with_extra=True, mesh=mesh)
   evaluate = None
   if val_examples is not None:
     val = full_future_examples(val_examples)
     ev = make_evaluate(cfg, val, tc.eval_batch_size)
     evaluate = lambda st: ev(st.params, st.extra)
-  batch_at = lambda step: data_lib.batch_at(train_examples, step, tc.batch_size, tc.seed)
+  rows = tc.batch_size if mesh is None else distributed.local_batch_size(tc.batch_size, mesh)
+  batch_at = lambda step: data_lib.batch_at(train_examples, step, rows, tc.seed)
   return trainer.fit(state, step_fn, batch_at, evaluate, tc, folder, config_lib.to_dict(cfg),
                      desc="diffusion", max_minutes=max_minutes, progress=progress,
                      schedule=trainer.learning_rate_schedule(tc), compare=CONFIG_SECTIONS,
-                     evaluate_state=True)
+                     evaluate_state=True, mesh=mesh)
 
 
 def load(workdir: str, use_prior: bool = True) -> tuple[Models, Config]:

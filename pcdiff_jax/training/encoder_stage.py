@@ -13,8 +13,10 @@ from typing import Any, Optional
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh
 
 from pcdiff_jax import config as config_lib
+from pcdiff_jax import distributed
 from pcdiff_jax.config import Config
 from pcdiff_jax.model import encoder
 from pcdiff_jax.training import data as data_lib
@@ -64,20 +66,25 @@ def init_params(cfg: Config, examples: Example, seed: int) -> Any:
 
 
 def train(cfg: Config, train_examples: Example, val_examples: Optional[Example], workdir: str,
-          max_minutes: Optional[float] = None, progress: bool = True):
-  """Trains (or resumes) stage 1 in WORKDIR/encoder. Returns (state, val metrics)."""
+          max_minutes: Optional[float] = None, progress: bool = True, mesh: Optional[Mesh] = None):
+  """Trains (or resumes) stage 1 in WORKDIR/encoder. Returns (state, val metrics).
+
+  mesh: data-parallel over its devices (`pcdiff_jax.distributed`); then
+  `train_examples` are this host's and it feeds its share of each global batch.
+  """
   tc = cfg.encoder_train
   stage_dir = os.path.join(workdir, STAGE_DIR)
   tx = trainer.make_optimizer(tc)
   params = init_params(cfg, train_examples, tc.seed)
   state = trainer.create_state(params, tx, tc.seed)
-  step_fn = trainer.make_train_step(make_loss_fn(cfg), tx)
+  step_fn = trainer.make_train_step(make_loss_fn(cfg), tx, mesh=mesh)
   evaluate = (make_evaluate(cfg, val_examples, tc.eval_batch_size)
               if val_examples is not None else None)
-  batch_at = lambda step: data_lib.batch_at(train_examples, step, tc.batch_size, tc.seed)
+  rows = tc.batch_size if mesh is None else distributed.local_batch_size(tc.batch_size, mesh)
+  batch_at = lambda step: data_lib.batch_at(train_examples, step, rows, tc.seed)
   return trainer.fit(state, step_fn, batch_at, evaluate, tc, stage_dir, config_lib.to_dict(cfg),
                      desc="encoder", max_minutes=max_minutes, progress=progress,
-                     schedule=trainer.learning_rate_schedule(tc), compare=CONFIG_SECTIONS)
+                     schedule=trainer.learning_rate_schedule(tc), compare=CONFIG_SECTIONS, mesh=mesh)
 
 
 def load(workdir: str) -> tuple[Any, Config]:

@@ -29,7 +29,9 @@ import numpy as np
 import optax
 import orbax.checkpoint as ocp
 from flax import struct
+from jax.sharding import Mesh
 
+from pcdiff_jax import distributed
 from pcdiff_jax.config import TrainConfig
 from pcdiff_jax.sim.datatypes import Array
 
@@ -68,11 +70,16 @@ def create_state(params: Any, tx: optax.GradientTransformation, seed: int,
 LossFn = Callable[..., tuple[Array, dict]]
 
 
-def make_train_step(loss_fn: LossFn, tx: optax.GradientTransformation, with_extra: bool = False):
+def make_train_step(loss_fn: LossFn, tx: optax.GradientTransformation, with_extra: bool = False,
+                    mesh: Optional[Mesh] = None):
   """jit((state, batch) -> (state, metrics)); metrics gain grad_norm.
 
   loss_fn(params, batch, rng) -> (loss, metrics), or with_extra
   loss_fn(params, extra, batch, rng) where `extra` is the state's frozen part.
+  With a `mesh` (`pcdiff_jax.distributed.data_mesh`) the step is data-parallel:
+  the batch is split along its `data` axis, the state and the metrics are
+  replicated, and the loss (a mean over the global batch) is the one device's
+  up to the order of float sums: XLA inserts the gradient all-reduce.
   """
   def train_step(state: TrainState, batch: Any):
     key = jax.random.fold_in(jax.random.wrap_key_data(state.rng), state.step)
@@ -83,7 +90,11 @@ def make_train_step(loss_fn: LossFn, tx: optax.GradientTransformation, with_extr
     params = optax.apply_updates(state.params, updates)
     metrics = dict(metrics, grad_norm=optax.global_norm(grads))
     return state.replace(step=state.step + 1, params=params, opt_state=opt_state), metrics
-  return jax.jit(train_step, donate_argnums=0)
+  if mesh is None:
+    return jax.jit(train_step, donate_argnums=0)
+  rep = distributed.replicated(mesh)
+  return jax.jit(train_step, in_shardings=(rep, distributed.batch_sharded(mesh)),
+                 out_shardings=(rep, rep), donate_argnums=0)
 
 
 def count_params(params: Any) -> int:
@@ -254,6 +265,16 @@ class ScalarLog:
       self._writer.close()
 
 
+class _NoScalars:
+  """ScalarLog's stand-in on hosts other than process 0."""
+
+  def write(self, step: int, scalars: dict) -> None:
+    pass
+
+  def close(self) -> None:
+    pass
+
+
 @contextlib.contextmanager
 def _sigterm_as_interrupt():
   previous = signal.getsignal(signal.SIGTERM)
@@ -280,32 +301,44 @@ def fit(state: TrainState, train_step: Callable, batch_at: Callable[[int], Any],
         desc: str = "train", max_minutes: Optional[float] = None, progress: bool = True,
         schedule: Optional[optax.Schedule] = None,
         compare: Optional[tuple[str, ...]] = None,
-        evaluate_state: bool = False) -> tuple[TrainState, dict]:
+        evaluate_state: bool = False, mesh: Optional[Mesh] = None) -> tuple[TrainState, dict]:
   """Trains until `cfg.total_steps` (or `max_minutes`), resuming from `workdir`.
 
   `compare`: the config sections a resumed run must match (default: all).
   `evaluate` gets the parameters, or the whole TrainState if `evaluate_state`.
+  `mesh`: data-parallel training (`train_step` from `make_train_step(...,
+  mesh=mesh)`): the state is replicated over the mesh, `batch_at(step)` gives
+  this host's rows of the global batch, validation runs on one device per host
+  and only process 0 writes scalars. A checkpoint holds whole arrays, so a run
+  resumes on any device count.
 
   Returns the final state and the last validation metrics ({} if none ran).
   """
   from tqdm.auto import tqdm
   ckpt = Checkpointer(workdir, cfg.keep_checkpoints)
+  if mesh is not None:   # the restore target: orbax reads each array straight onto the mesh
+    state = distributed.replicate(state, mesh)
   state = ckpt.restore_or_keep(state, config, compare)
-  # Host numpy leaves (restored or frozen) -> arrays committed to one device,
-  # like the step's outputs, so the first and later steps compile once.
-  state = jax.device_put(state, jax.devices()[0])
+  # Host numpy leaves (restored or frozen) -> arrays committed to one device
+  # (or replicated over the mesh), like the step's outputs, so the first and
+  # later steps compile once.
+  state = (jax.device_put(state, jax.devices()[0]) if mesh is None
+           else distributed.replicate(state, mesh))
+  primary = distributed.is_primary()
+  progress = progress and primary
   start = int(state.step)
   if start:
     log.info("resumed %s from step %d (%s)", desc, start, ckpt.directory)
-  scalars = ScalarLog(workdir)
+  scalars = ScalarLog(workdir) if primary else _NoScalars()
   last_eval: dict = {}
   t0 = time.time()
 
   def run_eval(step):
     nonlocal last_eval
-    if evaluate is None:
+    if evaluate is None or not primary:
       return
-    last_eval = evaluate(state if evaluate_state else state.params)
+    here = state if mesh is None else distributed.local_copy(state)
+    last_eval = evaluate(here if evaluate_state else here.params)
     scalars.write(step, {f"val/{k}": v for k, v in last_eval.items()})
     tqdm.write(f"[{desc}] step {step} val " + " ".join(f"{k}={v:.4g}" for k, v in last_eval.items()))
 
@@ -316,7 +349,10 @@ def fit(state: TrainState, train_step: Callable, batch_at: Callable[[int], Any],
   try:
     with _sigterm_as_interrupt():
       for step in range(start, cfg.total_steps):
-        state, metrics = train_step(state, batch_at(step))
+        batch = batch_at(step)
+        if mesh is not None:
+          batch = distributed.shard_batch(batch, mesh)
+        state, metrics = train_step(state, batch)
         pending.append(metrics)
         window_steps += 1
         done = step + 1
@@ -334,13 +370,14 @@ def fit(state: TrainState, train_step: Callable, batch_at: Callable[[int], Any],
           ckpt.save(state, config)
         if done % cfg.eval_every == 0 and done != cfg.total_steps:
           run_eval(done)
-        if max_minutes is not None and time.time() - t0 > 60 * max_minutes:
+        if max_minutes is not None and distributed.agree(time.time() - t0 > 60 * max_minutes):
           tqdm.write(f"[{desc}] time budget of {max_minutes} min reached at step {done}")
           break
   except KeyboardInterrupt:
     bar.close()
     ckpt.save(state, config)
-    tqdm.write(f"[{desc}] interrupted: saved step {int(state.step)} in {ckpt.directory}")
+    if primary:
+      tqdm.write(f"[{desc}] interrupted: saved step {int(state.step)} in {ckpt.directory}")
     scalars.close()
     ckpt.close()
     raise

@@ -1,0 +1,293 @@
+"""Waymo Open Sim Agents Challenge: simulate every sim agent 32 times, export, check.
+
+  cfg = wosac.WosacConfig(eval=evaluation.EvalConfig(method="pcdiff", checkpoint=W))
+  summary = wosac.export("validation.tfrecord-*", "sub.binproto", cfg, submission.Metadata(...))
+  report = wosac.check(["sub.binproto"], "validation.tfrecord-*")
+
+Who drives whom (`make_actor`): the sim agents are the objects valid at step
+10, the SDC included. `cv` and `idm` drive all of them. A learned method
+(`pcdiff`, `pcdiff-noprior`, `simpl-ar`) drives the SDC and the
+`eval.metrics.max_reactive_agents` sim agents nearest it (its agent cap, raised
+at rollout time as in `evaluation.with_agent_cap`); IDM drives the sim agents
+beyond the cap (the reactive fallback). `ego="idm"` hands the SDC to IDM instead.
+
+What the simulation sees: the scenario read with `history_only` (no logged
+state after step 10: objects that appear later never do, and no sim agent's
+logged future is read; box sizes are the mean over the history), and the
+traffic lights of step 10 held for the whole rollout (the test split has no
+later light states). Rollouts r = 0..31 of a scenario use the keys
+`split(fold_in(PRNGKey(seed), crc32(scenario_id)), 32)`, so a scenario's
+rollouts do not depend on sharding or order; they run `rollouts_per_call` at a
+time in one jitted, vmapped closed loop (`evaluation.make_rollout_fn`).
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import time
+import zlib
+from typing import Any, Optional, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pcdiff_jax import baselines, evaluation
+from pcdiff_jax.baselines import idm
+from pcdiff_jax.data import submission, womd
+from pcdiff_jax.sim.actors import Actor, combine
+
+log = logging.getLogger(__name__)
+
+METHODS = ("cv", "idm") + evaluation.LEARNED
+EGOS = ("method", "idm")
+
+
+@dataclasses.dataclass(frozen=True)
+class WosacConfig:
+  """eval: the method and its options (`evaluation.EvalConfig`: method,
+  checkpoint, sampler, seed; `metrics.max_reactive_agents` is a learned
+  method's cap of sim agents besides the SDC). ego: "method" (the method
+  drives the SDC too) or "idm". num_rollouts: 32 for a valid submission.
+  rollouts_per_call: rollouts per jitted call (memory against speed).
+  max_objects: padded object count (raise it for scenes with more than 128
+  sim agents). hold_lights: step 10's traffic lights for the whole rollout."""
+  eval: evaluation.EvalConfig = evaluation.EvalConfig()
+  ego: str = "method"
+  num_rollouts: int = submission.NUM_ROLLOUTS
+  rollouts_per_call: int = submission.NUM_ROLLOUTS
+  max_objects: int = 128
+  hold_lights: bool = True
+
+  def validate(self) -> None:
+    if self.eval.method not in METHODS:
+      raise ValueError(f"unknown WOSAC method {self.eval.method!r}; choose one of {list(METHODS)} "
+                       "(log replay and the expert read the logged future)")
+    if self.ego not in EGOS:
+      raise ValueError(f"unknown ego {self.ego!r}; choose one of {list(EGOS)}")
+    if self.num_rollouts < 1 or self.rollouts_per_call < 1:
+      raise ValueError("num_rollouts and rollouts_per_call must be >= 1")
+    if self.eval.num_steps != submission.NUM_SIM_STEPS or self.eval.init_steps != submission.CURRENT_INDEX + 1:
+      raise ValueError("WOSAC simulates steps 11-90: keep num_steps=80 and init_steps=11")
+
+
+def sim_agents_mask(state) -> jax.Array:
+  """(..., O) the sim agents of a state at its current step (after
+  `sim.reset`: step 10): every object valid there, the SDC included."""
+  return state.current_sim_trajectory.valid[..., 0]
+
+
+def with_sdc(actor: Actor) -> Actor:
+  """A learned actor that also drives the SDC, which its plans always model
+  (it is the first agent of every plan): the SDC joins its controlled set at
+  `init` (`policy.PlanState.controlled`, or SIMPL-AR's mask)."""
+  def init(rng, state):
+    inner = actor.init(rng, state)
+    sdc = state.object_metadata.is_sdc & state.current_sim_trajectory.valid[..., 0]
+    if isinstance(inner, jax.Array):
+      return inner | sdc
+    return inner.replace(controlled=inner.controlled | sdc)
+  return Actor(select_action=actor.select_action, init=init, name=actor.name)
+
+
+def make_actor(cfg: WosacConfig) -> tuple[Actor, Any]:
+  """(actor, params): the method on every sim agent (see the module docstring)."""
+  cfg.validate()
+  if cfg.eval.method == "cv":
+    return drive_all(baselines.constant_velocity(sim_agents_mask), None, learned=False, ego=cfg.ego)
+  if cfg.eval.method == "idm":
+    return drive_all(idm.idm(controlled_fn=sim_agents_mask), None, learned=False, ego=cfg.ego)
+  actor, models = evaluation.make_actor(dataclasses.replace(cfg.eval, ego="log"))
+  return drive_all(actor, models, learned=True, ego=cfg.ego)
+
+
+def drive_all(actor: Actor, params: Any, learned: bool, ego: str = "method") -> tuple[Actor, Any]:
+  """(actor, params) driving every sim agent: `actor` itself (a baseline
+  over `sim_agents_mask`), or for a learned actor, IDM on every sim agent with
+  the learned one (plus the SDC unless ego="idm") over it; ego="idm" hands
+  the SDC to IDM last. Later actors win where they control an object."""
+  actors, all_params = [actor], [params]
+  if learned:
+    fallback = idm.idm(controlled_fn=sim_agents_mask, name="idm-fallback")
+    actors, all_params = [fallback, with_sdc(actor) if ego == "method" else actor], [None, params]
+  if ego == "idm":
+    actors.append(idm.idm(controlled_fn=idm.sdc_only, name="idm-ego"))
+    all_params.append(None)
+  if len(actors) == 1:
+    return actor, params
+  return combine(actors, name="+".join(a.name for a in actors)), tuple(all_params)
+
+
+def hold_current_lights(state, current: int = submission.CURRENT_INDEX):
+  """The traffic lights of step `current` repeated at every later step."""
+  tl = state.log_traffic_light
+  index = np.minimum(np.arange(tl.valid.shape[-1]), current)
+  return state.replace(log_traffic_light=jax.tree_util.tree_map(lambda a: a[..., index], tl))
+
+
+def rollout_keys(seed: int, scenario_id: str, num_rollouts: int) -> jax.Array:
+  """(R, 2) the rollout keys of one scenario (independent of shards and order)."""
+  key = jax.random.fold_in(jax.random.PRNGKey(seed), zlib.crc32(scenario_id.encode()) & 0x7FFFFFFF)
+  return jax.random.split(key, num_rollouts)
+
+
+def num_parameters(params: Any) -> int:
+  return int(sum(np.size(a) for a in jax.tree_util.tree_leaves(params)))
+
+
+@dataclasses.dataclass
+class ScenarioResult:
+  """One scenario's rollouts: object_ids (A,) the sim agents; trajectories
+  (R, A, 80, 4) [x, y, z, heading]; lost: sim-agent steps the simulation left
+  invalid (held at the last valid pose; 0 for every shipped method)."""
+  object_ids: np.ndarray
+  trajectories: np.ndarray
+  lost: int
+
+
+class Simulator:
+  """The jitted closed loop of one method, `rollouts_per_call` rollouts per call."""
+
+  def __init__(self, cfg: WosacConfig):
+    self.cfg = cfg
+    self.actor, self.params = make_actor(cfg)
+    self.run = evaluation.make_rollout_fn(self.actor, cfg.eval)
+
+  def simulate(self, state, scenario_id: str) -> ScenarioResult:
+    """One loaded (unbatched) scenario -> its rollouts."""
+    cfg = self.cfg
+    if cfg.hold_lights:
+      state = hold_current_lights(state)
+    current = submission.CURRENT_INDEX
+    log_valid = np.asarray(state.log_trajectory.valid)
+    agents = np.nonzero(log_valid[:, current])[0]
+    keys = rollout_keys(cfg.eval.seed, scenario_id, cfg.num_rollouts)
+    per_call = min(cfg.rollouts_per_call, cfg.num_rollouts)
+    calls = -(-cfg.num_rollouts // per_call)
+    keys = jnp.concatenate([keys, jnp.repeat(keys[-1:], calls * per_call - cfg.num_rollouts, 0)])
+    tiled = jax.tree_util.tree_map(lambda a: jnp.repeat(jnp.asarray(a)[None], per_call, 0), state)
+    parts = []
+    for c in range(calls):
+      final = self.run(tiled, keys[c * per_call:(c + 1) * per_call], self.params)
+      traj = final.sim_trajectory
+      fields = jax.device_get((traj.x, traj.y, traj.z, traj.yaw, traj.valid))
+      parts.append([np.asarray(f)[:, agents, current + 1:] for f in fields])
+    x, y, z, yaw, valid = (np.concatenate([p[i] for p in parts])[:cfg.num_rollouts] for i in range(5))
+    out = np.stack([x, y, z, yaw], -1).astype(np.float32)          # (R, A, 80, 4)
+    lost = int((~valid).sum())
+    if lost:
+      out = _hold_last_valid(out, valid, np.stack([np.asarray(getattr(state.log_trajectory, f))[agents, current]
+                                                   for f in ("x", "y", "z", "yaw")], -1))
+    ids = np.asarray(state.object_metadata.ids)[agents]
+    return ScenarioResult(object_ids=ids, trajectories=out, lost=lost)
+
+
+def _hold_last_valid(out: np.ndarray, valid: np.ndarray, start: np.ndarray) -> np.ndarray:
+  """(R, A, S, 4) with each invalid step replaced by the last valid one (the
+  step-10 pose `start` (A, 4) before any)."""
+  steps = np.arange(out.shape[2])
+  last = np.maximum.accumulate(np.where(valid, steps, -1), axis=2)            # (R, A, S)
+  held = np.take_along_axis(out, np.maximum(last, 0)[..., None], axis=2)
+  return np.where((last >= 0)[..., None], held, start[None, :, None, :]).astype(np.float32)
+
+
+def select_files(scenarios, shard: Optional[tuple[int, int]] = None) -> list[str]:
+  """The input files, or shard (index, count)'s share of them (every count-th file)."""
+  files = womd.expand_paths(scenarios)
+  if shard is None:
+    return files
+  index, count = shard
+  if not 0 <= index < count:
+    raise ValueError(f"shard {index}/{count}: the index must be in [0, {count})")
+  if count > len(files):
+    raise ValueError(f"{count} shards but only {len(files)} input file(s): shards split the files, "
+                     "use at most one shard per file")
+  return files[index::count]
+
+
+def export(scenarios, out: str, cfg: WosacConfig, metadata: submission.Metadata,
+           shard: Optional[tuple[int, int]] = None, max_scenarios: Optional[int] = None,
+           progress: bool = True) -> dict:
+  """Simulates every scenario of `scenarios` (or the shard's files) and
+  writes the submission file; returns a summary (path, counts, seconds per
+  scenario with the first, compiling one left out). An empty
+  `metadata.num_model_parameters` is filled with the method's parameter count."""
+  files = select_files(scenarios, shard)
+  path = submission.shard_path(out, *(shard or (None, None)))
+  simulator = Simulator(cfg)
+  if metadata.num_model_parameters == "":
+    metadata = dataclasses.replace(metadata, num_model_parameters=submission.format_num_parameters(
+        num_parameters(simulator.params)))
+  from tqdm.auto import tqdm
+  seconds, lost, agents, fallback = [], 0, 0, 0
+  cap = cfg.eval.metrics.max_reactive_agents + 1   # the learned agents and the SDC (method or IDM ego)
+  items = womd.iterate(files, with_meta=True, history_only=True, max_num_objects=cfg.max_objects,
+                       max_scenarios=max_scenarios, to_jax=False)
+  with submission.SubmissionWriter(path, metadata) as writer:
+    for state, meta in tqdm(items, desc=f"wosac {cfg.eval.method}", unit="scenario", disable=not progress):
+      t0 = time.perf_counter()
+      result = simulator.simulate(state, meta.scenario_id)
+      writer.add(submission.scenario_rollouts(meta.scenario_id, result.object_ids, result.trajectories))
+      seconds.append(time.perf_counter() - t0)
+      lost += result.lost
+      agents += len(result.object_ids)
+      if cfg.eval.method in evaluation.LEARNED:
+        fallback += max(0, len(result.object_ids) - cap)
+    if writer.count == 0:
+      raise ValueError(f"no scenario in {files}")
+  if lost:
+    log.warning("%d sim-agent steps were invalid in the simulation and were held at the last valid pose", lost)
+  timed = seconds[1:] or seconds
+  return {"path": path, "num_scenarios": writer.count, "sim_agents": agents, "fallback_agents": fallback,
+          "lost_steps": lost, "num_rollouts": cfg.num_rollouts,
+          "seconds_per_scenario": float(np.mean(timed)), "first_scenario_seconds": seconds[0],
+          "metadata": dataclasses.asdict(metadata)}
+
+
+def check(paths: Sequence[str], scenarios, max_objects: int = 128, strict: bool = False,
+          num_rollouts: int = submission.NUM_ROLLOUTS) -> dict:
+  """Checks submission file(s) against the scenarios they simulate: every
+  official rule (`submission.check_rollouts`), every scenario exactly once,
+  no unknown scenario, and the metadata (`submission.check_metadata`: errors
+  with `strict`, else warnings, since a local evaluation does not need them).
+  Returns {"errors": [...], "warnings": [...], counts}."""
+  files = []
+  for p in paths:
+    files += womd.expand_paths(p)
+  expected: dict[str, tuple[list[int], dict]] = {}
+  for state, meta in womd.iterate(scenarios, with_meta=True, history_only=True, max_num_objects=max_objects,
+                                  to_jax=False):
+    now = np.asarray(state.log_trajectory.valid)[:, submission.CURRENT_INDEX]
+    ids = np.asarray(state.object_metadata.ids)
+    xy = np.stack([np.asarray(state.log_trajectory.x)[:, submission.CURRENT_INDEX],
+                   np.asarray(state.log_trajectory.y)[:, submission.CURRENT_INDEX]], -1)
+    expected[meta.scenario_id] = (submission.sim_agent_ids(ids, now),
+                                  {int(i): tuple(p) for i, p, v in zip(ids, xy, now) if v})
+  errors, warnings, seen, names = [], [], {}, set()
+  for path in files:
+    sub = submission.read(path)
+    names.add(sub.unique_method_name)
+    problems = submission.check_metadata(sub, path)
+    (errors if strict else warnings).extend(problems)
+    for rollouts in sub.scenario_rollouts:
+      sid = rollouts.scenario_id
+      if sid in seen:
+        errors.append(f"{path}: scenario {sid} is also in {seen[sid]} (each scenario exactly once)")
+        continue
+      seen[sid] = path
+      if sid not in expected:
+        errors.append(f"{path}: scenario {sid!r} is not in --scenarios")
+        continue
+      e, w = submission.check_rollouts(rollouts, expected[sid][0], num_rollouts=num_rollouts,
+                                       start_xy=expected[sid][1])
+      errors += e
+      warnings += w
+  missing = sorted(set(expected) - set(seen))
+  if missing:
+    errors.append(f"{len(missing)} scenario(s) of --scenarios have no rollouts: "
+                  f"{missing[:5]}{' ...' if len(missing) > 5 else ''}")
+  if len(names) > 1:
+    warnings.append(f"the files name different methods: {sorted(names)}")
+  return {"errors": errors, "warnings": warnings, "files": len(files), "scenarios": len(expected),
+          "scenarios_submitted": len(seen)}
