@@ -38,8 +38,9 @@ data: install   # the built-in dataset (docs/DATA.md): 2000 train + 200 val scen
 TRAIN_DIR ?= runs/train
 FINETUNE_ARGS ?= --rounds 7 --scenes 300 --steps 600
 LANE_ARGS ?= --lane-inputs --rounds 3 --scenes 300 --first-scene 3300 --steps 1000
+MORE_ARGS ?= --rounds 4 --scenes 300 --first-scene 4000 --steps 1000
 # The shipped model's recipe from scratch (checkpoints/*/MODEL_CARD.md): 10k scenes, both stages,
-# on-policy fine-tuning rounds, lane-input rounds, export. Each command resumes where it stopped when re-run.
+# on-policy fine-tuning rounds, lane-input rounds (v6), four more rounds (v7), export. Each command resumes where it stopped when re-run.
 train: install
 	$(PY) -m experiments.make_data --out data/synth10k --num-train 10000 --num-val 200 --seed 0 --shard-size 500
 	$(PY) -m experiments.train --stage encoder --config cpu --data 'data/synth10k/train-*' --workdir $(TRAIN_DIR) --steps 1800
@@ -48,7 +49,9 @@ train: install
 	  --cache-dir $(TRAIN_DIR)/cache $(FINETUNE_ARGS)
 	$(PY) -m experiments.finetune --from $(TRAIN_DIR)-onpolicy --data 'data/synth10k/train-*' --workdir $(TRAIN_DIR)-lanes \
 	  --cache-dir $(TRAIN_DIR)/cache $(LANE_ARGS)
-	$(PY) -m experiments.export --workdir $(TRAIN_DIR)-lanes --out $(TRAIN_DIR)-model
+	$(PY) -m experiments.finetune --from $(TRAIN_DIR)-lanes --data 'data/synth10k/train-*' --workdir $(TRAIN_DIR)-more \
+	  --cache-dir $(TRAIN_DIR)/cache $(MORE_ARGS)
+	$(PY) -m experiments.export --workdir $(TRAIN_DIR)-more --out $(TRAIN_DIR)-model
 
 # Re-executes notebooks/quickstart.ipynb in place on the shipped model (commit the outputs).
 notebook: install

@@ -14,7 +14,7 @@ import os
 import shutil
 from typing import Optional
 
-DEFAULT_NAME = "pcdiff-cpu-v6"
+DEFAULT_NAME = "pcdiff-cpu-v7"
 _STAGES = ("encoder", "diffusion")
 
 
