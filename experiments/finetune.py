@@ -12,6 +12,16 @@ WORKDIR/round-r/on_policy.npz and its model in WORKDIR/round-r; the last
 round's model is WORKDIR itself (WORKDIR/diffusion, WORKDIR/encoder), so
 `--checkpoint WORKDIR` and `experiments.export` take it. Run the same command
 again after an interruption: finished rounds are kept, the current one resumes.
+
+--policy simpl-ar does the same for the SIMPL-AR baseline (CAT-K on its own
+closed loop): each round rolls SIMPL-AR out with its current encoder and
+fine-tunes that encoder alone (--encoder-steps) on the mixed batches. Its
+encoder goes to WORKDIR/simpl_ar (read by `--method simpl-ar` and
+`pretrained(stage="simpl-ar")`); the diffusion policy and its encoder are
+copied unchanged from --from:
+
+  python -m experiments.finetune --policy simpl-ar --from checkpoints/pcdiff-cpu-v7 \
+      --data 'data/synth20/train-*' --workdir runs/sa --rounds 2 --scenes 100 --encoder-steps 600
 """
 from __future__ import annotations
 
@@ -38,11 +48,17 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--data", required=True, nargs="+", help="training TFRecord file(s) or glob(s)")
   p.add_argument("--workdir", required=True, type=_args.output_dir)
   p.add_argument("--cache-dir", default=None, help="logged-example cache (default WORKDIR/cache)")
+  p.add_argument("--policy", choices=("pcdiff", "simpl-ar"), default="pcdiff",
+                 help="whose closed loop is rolled out and fine-tuned: pcdiff (the denoiser, and the "
+                      "encoder with --encoder-steps) or simpl-ar (the SIMPL-AR baseline's own encoder only)")
   p.add_argument("--rounds", type=int, default=1)
   p.add_argument("--scenes", type=int, default=400, help="training scenes rolled out per round")
   p.add_argument("--first-scene", type=int, default=0,
                  help="round r rolls out training scenes FIRST + r * SCENES on (skip the scenes "
                       "that the rounds of the --from model used)")
+  p.add_argument("--extra-on-policy", nargs="+", default=[], metavar="NPZ",
+                 help="on-policy examples of earlier runs (file(s) or glob(s), e.g. "
+                      "'runs/l2/round-*/on_policy.npz') joined to every round's")
   p.add_argument("--steps", type=int, default=600, help="optimizer steps per round")
   p.add_argument("--learning-rate", type=float, default=2e-4)
   p.add_argument("--encoder-steps", type=int, default=0,
@@ -68,8 +84,8 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--teacher-inner-steps", type=int, default=3,
                  help="guided targets: gradient steps per guided DDIM step")
   p.add_argument("--lane-inputs", action="store_true",
-                 help="give the denoiser each agent's lane-relative inputs (model.lane_context) through a "
-                      "new zero-initialised projection, trained from here on")
+                 help="give the denoiser (--policy simpl-ar: SIMPL-AR's encoder) each agent's lane-relative "
+                      "inputs (model.lane_context) through new zero-initialised projections, trained from here on")
   p.add_argument("--rollout-batch", type=int, default=4, help="scenes per jitted rollout call")
   p.add_argument("--max-agents", type=int, default=64, help="reactive agents the policy controls")
   p.add_argument("--seed", type=int, default=0)
@@ -88,11 +104,62 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.error("--first-scene must be >= 0")
   if args.encoder_steps < 0:
     p.error("--encoder-steps must be >= 0")
+  if args.policy == "simpl-ar" and not args.encoder_steps:
+    p.error("--policy simpl-ar trains SIMPL-AR's encoder only: give --encoder-steps")
+  if args.policy == "simpl-ar" and args.targets != "rejoin":
+    p.error("--targets guided is an option of --policy pcdiff")
   if not 1 <= args.teacher_guided_steps <= 5 or args.teacher_inner_steps < 1:
     p.error("--teacher-guided-steps must be in [1, 5] and --teacher-inner-steps >= 1")
   if args.teacher_w_map < 0 or args.teacher_w_coll < 0:
     p.error("--teacher-w-map and --teacher-w-coll must be >= 0")
   return args
+
+
+def _expand(patterns) -> list[str]:
+  """The files of the globs in PATTERNS, sorted; a pattern with no file is an error."""
+  import glob
+  files = []
+  for pattern in patterns:
+    found = sorted(glob.glob(pattern))
+    if not found:
+      raise FileNotFoundError(f"--extra-on-policy {pattern}: no such file")
+    files.extend(found)
+  return files
+
+
+def _read_extra(path: str, like):
+  """On-policy examples of an earlier run, checked against the model's example shapes."""
+  import zipfile
+  from pcdiff_jax.training import data as data_lib
+  try:
+    examples, _ = data_lib.read_examples(path)
+  except (OSError, KeyError, ValueError, zipfile.BadZipFile) as err:
+    raise ValueError(f"--extra-on-policy {path}: not an on_policy.npz of experiments.finetune ({err})") from None
+  shapes = lambda ex: [a.shape[1:] for a in jax.tree_util.tree_leaves(ex)]
+  if shapes(examples) != shapes(like):
+    raise ValueError(f"--extra-on-policy {path}: its examples do not have this model's shapes "
+                     "(collected with another config)")
+  return examples
+
+
+def _copy_dir(src: str, dst: str) -> None:
+  """Replaces DST by a copy of SRC (through a temporary folder: an interrupted
+  copy never leaves half a checkpoint)."""
+  if os.path.isdir(src) and os.path.abspath(src) != os.path.abspath(dst):
+    tmp = dst + ".tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(src, tmp)
+    shutil.rmtree(dst, ignore_errors=True)
+    os.replace(tmp, dst)
+
+
+def _publish_simpl_ar(round_dir: str, source: str, workdir: str) -> None:
+  """WORKDIR/simpl_ar := the round's SIMPL-AR encoder; the diffusion policy
+  and its encoder stay those of --from."""
+  from pcdiff_jax.training import encoder_stage
+  for stage in ("encoder", "diffusion"):
+    _copy_dir(os.path.join(source, stage), os.path.join(workdir, stage))
+  _copy_dir(os.path.join(round_dir, encoder_stage.STAGE_DIR), os.path.join(workdir, encoder_stage.SIMPL_AR_DIR))
 
 
 def _publish(round_dir: str, source: str, workdir: str) -> None:
@@ -101,13 +168,7 @@ def _publish(round_dir: str, source: str, workdir: str) -> None:
   encoder = os.path.join(round_dir, "encoder")
   for stage, src in (("diffusion", os.path.join(round_dir, "diffusion")),
                      ("encoder", encoder if os.path.isdir(encoder) else os.path.join(source, "encoder"))):
-    dst = os.path.join(workdir, stage)
-    if os.path.isdir(src) and os.path.abspath(src) != os.path.abspath(dst):
-      tmp = dst + ".tmp"
-      shutil.rmtree(tmp, ignore_errors=True)
-      shutil.copytree(src, tmp)
-      shutil.rmtree(dst, ignore_errors=True)
-      os.replace(tmp, dst)
+    _copy_dir(src, os.path.join(workdir, stage))
 
 
 def main(argv=None) -> int:
@@ -118,16 +179,31 @@ def main(argv=None) -> int:
   from pcdiff_jax.training import data as data_lib
   try:
     files = womd.expand_paths(args.data)
-    if not os.path.isdir(os.path.join(args.source, "diffusion")):
-      raise FileNotFoundError(f"--from {args.source}: no diffusion/ model folder there")
-    models, model_cfg = diffusion_stage.load(args.source)
-    if args.lane_inputs:
-      from pcdiff_jax.model import denoiser
-      den_cfg = dataclasses.replace(model_cfg.diffusion.denoiser, lane_inputs=True)
-      model_cfg = dataclasses.replace(model_cfg, diffusion=dataclasses.replace(model_cfg.diffusion, denoiser=den_cfg))
-      models = models.replace(denoiser=denoiser.with_new_inputs(models.denoiser, den_cfg))
+    simpl = args.policy == "simpl-ar"
+    needed = "encoder" if simpl else "diffusion"
+    if not os.path.isdir(os.path.join(args.source, needed)):
+      raise FileNotFoundError(f"--from {args.source}: no {needed}/ model folder there")
+    if simpl:
+      models, model_cfg = encoder_stage.load_simpl_ar(args.source)   # SIMPL-AR's params: its encoder's
+      if args.lane_inputs:
+        from pcdiff_jax.model import encoder
+        enc_cfg = dataclasses.replace(model_cfg.encoder, lane_inputs=True)
+        model_cfg = dataclasses.replace(model_cfg, encoder=enc_cfg)
+        models = encoder.with_new_inputs(models, enc_cfg)
+    else:
+      models, model_cfg = diffusion_stage.load(args.source)
+      if args.lane_inputs:
+        from pcdiff_jax.model import denoiser
+        den_cfg = dataclasses.replace(model_cfg.diffusion.denoiser, lane_inputs=True)
+        model_cfg = dataclasses.replace(model_cfg, diffusion=dataclasses.replace(model_cfg.diffusion,
+                                                                                 denoiser=den_cfg))
+        models = models.replace(denoiser=denoiser.with_new_inputs(models.denoiser, den_cfg))
     metrics_cfg = dataclasses.replace(model_cfg.metrics, max_reactive_agents=args.max_agents)
     run_cfg = evaluation.with_agent_cap(model_cfg, metrics_cfg)
+    actor = None
+    if simpl:
+      from pcdiff_jax.baselines import simpl_ar
+      actor = simpl_ar.simpl_ar(run_cfg)
     ocfg = closed_loop.OnPolicyConfig(times=tuple(args.times), max_offset=args.max_offset, mix=args.mix,
                                       lane_tail=not args.straight_tail, targets=args.targets)
     teacher = None
@@ -146,7 +222,7 @@ def main(argv=None) -> int:
     logged, _ = data_lib.load_or_build(files, spec, cache, "train", progress=not args.no_progress)
     os.makedirs(args.workdir, exist_ok=True)
     source = args.source
-    history, gathered = [], []
+    history, gathered = [], [_read_extra(path, logged) for path in _expand(args.extra_on_policy)]
     for r in range(args.rounds):
       round_dir = os.path.join(args.workdir, f"round-{r}")
       os.makedirs(round_dir, exist_ok=True)
@@ -158,7 +234,7 @@ def main(argv=None) -> int:
         on_policy, info = closed_loop.collect(
             models, run_cfg, policy.PolicyConfig(), files, ocfg, first=args.first_scene + r * args.scenes,
             count=args.scenes, batch_size=args.rollout_batch, seed=args.seed + r,
-            progress=not args.no_progress, teacher=teacher)
+            progress=not args.no_progress, teacher=teacher, actor=actor)
         info["minutes"] = (time.time() - t0) / 60
         data_lib.write_examples(path, on_policy, info)
       print(f"round {r}: {json.dumps(info)}")
@@ -172,22 +248,29 @@ def main(argv=None) -> int:
                                   warmup_steps=min(50, args.encoder_steps // 10),
                                   eval_every=args.encoder_steps, checkpoint_every=min(100, args.encoder_steps),
                                   seed=args.seed, batch_size=args.batch_size or model_cfg.encoder_train.batch_size)
-        enc_state, _ = closed_loop.finetune_encoder(models.encoder, model_cfg, logged, on_policy, round_dir,
-                                                    etc, ocfg, progress=not args.no_progress)
-        models = models.replace(encoder=enc_state.params)
-      state, _ = closed_loop.finetune(models, model_cfg, logged, on_policy, round_dir, tc, ocfg,
-                                      progress=not args.no_progress)
-      models, _ = diffusion_stage.load(round_dir)
+        enc_state, _ = closed_loop.finetune_encoder(models if simpl else models.encoder, model_cfg, logged,
+                                                    on_policy, round_dir, etc, ocfg,
+                                                    progress=not args.no_progress)
+        state = enc_state
+        models = enc_state.params if simpl else models.replace(encoder=enc_state.params)
+      if not simpl:
+        state, _ = closed_loop.finetune(models, model_cfg, logged, on_policy, round_dir, tc, ocfg,
+                                        progress=not args.no_progress)
+        models, _ = diffusion_stage.load(round_dir)
       history.append({"round": r, "collect": info, "finetune_minutes": (time.time() - t1) / 60,
                       "step": int(state.step)})
-      _publish(round_dir, source, args.workdir)
-      source = args.workdir
+      if simpl:
+        _publish_simpl_ar(round_dir, args.source, args.workdir)
+      else:
+        _publish(round_dir, source, args.workdir)
+        source = args.workdir
     out = {"from": args.source, "rounds": history, "args": vars(args)}
     with open(os.path.join(args.workdir, "finetune_summary.json"), "w") as f:
       json.dump(out, f, indent=2)
     print(json.dumps(out, indent=2))
-    print(f"wrote {args.workdir}/finetune_summary.json, the final model in {args.workdir}/diffusion/ "
-          f"(+ encoder/) and each round in {args.workdir}/round-*/")
+    final = "simpl_ar/ (SIMPL-AR's encoder)" if simpl else "diffusion/ (+ encoder/)"
+    print(f"wrote {args.workdir}/finetune_summary.json, the final model in {args.workdir}/{final} "
+          f"and each round in {args.workdir}/round-*/")
   except (FileNotFoundError, ValueError, trainer.CheckpointMismatch) as err:
     print(f"error: {err}", file=sys.stderr)
     return 2

@@ -29,7 +29,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="TFRecord file(s) or glob(s) of WOMD motion tf.Examples or Scenario protos")
   p.add_argument("--method", default="cv", choices=sorted(evaluation.METHODS) + list(evaluation.LEARNED))
   p.add_argument("--checkpoint", default=None,
-                 help="training workdir of the learned methods (pcdiff, pcdiff-noprior, simpl-ar)")
+                 help="training workdir or model folder of the learned methods (pcdiff, pcdiff-noprior, "
+                      "simpl-ar; simpl-ar reads its own encoder, simpl_ar/, where the folder has one)")
   p.add_argument("--ego", default="log", choices=evaluation.EGOS,
                  help="the SDC's fixed policy: log replay (default) or IDM")
   p.add_argument("--ddim-steps", type=int, default=5)

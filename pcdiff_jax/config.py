@@ -59,6 +59,9 @@ class EncoderConfig:
   each curve starts at the agent's current forward velocity (SIMPL pins only
   the start position; a free start velocity puts a jump into every
   proposal's first action, which the closed loop executes at 10 Hz).
+  `lane_inputs` adds each agent's lane-relative inputs (`model.lane_context`)
+  to its token and to the proposal head through zero-initialised projections
+  (`encoder.with_new_inputs`: a model trained without them loads unchanged).
   """
   d_model: int = 128
   num_heads: int = 8
@@ -73,6 +76,7 @@ class EncoderConfig:
   bezier_degree: int = 7
   proposal_scale: float = 10.0     # m, output scale of the control points
   anchor_velocity: bool = True
+  lane_inputs: bool = False        # each agent's lane-relative inputs (`model.lane_context`)
 
 
 @dataclasses.dataclass(frozen=True)

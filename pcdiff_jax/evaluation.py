@@ -123,7 +123,7 @@ def _method_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
   from pcdiff_jax.training import diffusion_stage, encoder_stage
   if cfg.method == "simpl-ar":
     from pcdiff_jax.baselines import simpl_ar
-    enc, model_cfg = encoder_stage.load(cfg.checkpoint)
+    enc, model_cfg = encoder_stage.load_simpl_ar(cfg.checkpoint)
     ar = simpl_ar.SimplARConfig(sample=cfg.simpl_ar_sample)
     return simpl_ar.simpl_ar(with_agent_cap(model_cfg, cfg.metrics), ar), enc
   use_prior = cfg.method == "pcdiff"

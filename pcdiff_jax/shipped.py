@@ -1,7 +1,8 @@
 """The shipped model: one call to load it, one to export a training run like it.
 
   models, cfg = pcdiff_jax.pretrained()   # both stages + latent statistics + config
-  encoder_params, cfg = pcdiff_jax.pretrained(stage="encoder")   # SIMPL-AR's encoder
+  encoder_params, cfg = pcdiff_jax.pretrained(stage="encoder")   # stage 1 (the proposal prior)
+  simpl_ar_params, cfg = pcdiff_jax.pretrained(stage="simpl-ar")  # the SIMPL-AR baseline's encoder
 
 `checkpoints/<name>/` (committed, see its MODEL_CARD.md) has the layout of a
 training workdir (`encoder/checkpoints/<step>`, `diffusion/checkpoints/<step>`),
@@ -16,6 +17,8 @@ from typing import Optional
 
 DEFAULT_NAME = "pcdiff-cpu-v7"
 _STAGES = ("encoder", "diffusion")
+_OPTIONAL_STAGES = ("simpl_ar",)   # encoder_stage.SIMPL_AR_DIR: copied when the workdir has it
+STAGES = ("encoder", "diffusion", "simpl-ar")
 
 
 def checkpoint_dir(name: str = DEFAULT_NAME) -> str:
@@ -34,17 +37,21 @@ def checkpoint_dir(name: str = DEFAULT_NAME) -> str:
 
 def pretrained(name: str = DEFAULT_NAME, stage: str = "diffusion", path: Optional[str] = None):
   """(models, cfg) of a shipped model (`planner.Models`, `config.Config`);
-  stage="encoder" returns (encoder parameters, cfg) instead. `path`: a folder
-  with the same layout (e.g. an exported or a training workdir)."""
+  stage="encoder" returns (encoder parameters, cfg) instead, stage="simpl-ar"
+  those the SIMPL-AR baseline runs with (its own fine-tuned encoder when the
+  folder has one, else stage 1's). `path`: a folder with the same layout (e.g.
+  an exported or a training workdir)."""
   from pcdiff_jax.training import diffusion_stage, encoder_stage
   folder = path or checkpoint_dir(name)
   if not os.path.isdir(folder):
     raise FileNotFoundError(f"no shipped model at {folder} (set PCDIFF_CHECKPOINTS or pass path=; an "
                             f"installed wheel carries only {DEFAULT_NAME})")
+  if stage not in STAGES:
+    raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
   if stage == "encoder":
     return encoder_stage.load(folder)
-  if stage != "diffusion":
-    raise ValueError(f"stage must be 'encoder' or 'diffusion', got {stage!r}")
+  if stage == "simpl-ar":
+    return encoder_stage.load_simpl_ar(folder)
   return diffusion_stage.load(folder)
 
 
@@ -61,8 +68,9 @@ def read_config(path: str, stage: str = "diffusion"):
 
 def export(workdir: str, out: str) -> dict[str, int]:
   """Copies the latest checkpoint of each stage of a training WORKDIR into OUT
-  (same layout) with parameters, frozen extras and config only. Returns the
-  step of each stage. Refuses to overwrite an existing OUT."""
+  (same layout) with parameters, frozen extras and config only, and the
+  SIMPL-AR encoder (simpl_ar/) when the workdir has one. Returns the step of
+  each stage. Refuses to overwrite an existing OUT."""
   from pcdiff_jax.training import trainer
   if os.path.exists(out):
     raise FileExistsError(f"{out} exists; remove it or choose another --out")
@@ -70,7 +78,8 @@ def export(workdir: str, out: str) -> dict[str, int]:
   tmp = out.rstrip("/") + ".tmp"
   shutil.rmtree(tmp, ignore_errors=True)
   try:
-    for stage in _STAGES:
+    optional = [s for s in _OPTIONAL_STAGES if os.path.isdir(os.path.join(workdir, s))]
+    for stage in _STAGES + tuple(optional):
       src = trainer.Checkpointer(os.path.join(workdir, stage), read_only=True)
       try:
         step, config, raw = src.latest_step(), src.read_config(), src.restore_raw()

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import pytest
 
@@ -85,3 +86,26 @@ def test_family_table_weights_scenarios_by_their_agents(tmp_path, capsys):
   (tmp_path / "scenarios.jsonl").write_text("{}\n")
   assert family_table.main([str(tmp_path)]) == 2
   assert "line 1" in capsys.readouterr().err
+
+
+def test_make_train_passes_only_options_its_clis_accept(tmp_path):
+  """`make train` (the shipped model's recipe from scratch) is hours long: its
+  commands are checked here against the CLIs' parsers, so a renamed or
+  removed option fails in CI, not hours into a user's run."""
+  import importlib
+  import shlex
+  import shutil
+  import subprocess
+  if shutil.which("make") is None:
+    pytest.skip("make is not installed")
+  root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+  text = subprocess.run(["make", "-n", "-s", "-C", root, "train", f"TRAIN_DIR={tmp_path}/t", "PY=python"],
+                        capture_output=True, text=True, check=True).stdout
+  commands = [shlex.split(line) for line in text.replace("\\\n", " ").splitlines()
+              if line.startswith("python -m experiments.")]
+  assert {c[2] for c in commands} >= {"experiments.make_data", "experiments.train", "experiments.finetune",
+                                      "experiments.export"}
+  for command in commands:
+    cli = importlib.import_module(command[2])
+    if hasattr(cli, "parse_args"):
+      cli.parse_args(command[3:])

@@ -1,4 +1,4 @@
-"""Lane-relative denoiser inputs (model.lane_context) and loading a model trained without them."""
+"""Lane-relative inputs (model.lane_context) and loading a denoiser or an encoder trained without them."""
 from __future__ import annotations
 
 import dataclasses
@@ -9,7 +9,7 @@ import numpy as np
 
 from conftest import make_scene
 from pcdiff_jax.config import get_config
-from pcdiff_jax.model import denoiser, features, lane_context, planner
+from pcdiff_jax.model import denoiser, encoder, features, lane_context, planner
 
 CFG = get_config("tiny")
 
@@ -63,6 +63,25 @@ def test_a_model_trained_without_lane_inputs_loads_with_them_unchanged(tiny_mode
   after, lanes = out(with_lanes, params)
   assert no_lanes.shape[-1] == 0 and lanes.shape[-1] == lane_context.LANE_DIM and np.abs(lanes).sum() > 0
   np.testing.assert_allclose(np.asarray(after), np.asarray(before), atol=1e-5)
+
+
+def test_an_encoder_trained_without_lane_inputs_loads_with_them_unchanged(tiny_models):
+  """`encoder.with_new_inputs` (SIMPL-AR's encoder, `finetune --policy simpl-ar
+  --lane-inputs`): the same proposals until trained, and the new projections
+  get a gradient, so training can use the lane inputs."""
+  cfg = dataclasses.replace(CFG.encoder, lane_inputs=True)
+  state = make_scene(num_steps=31).replace(timestep=jnp.int32(10))
+  feats = jax.jit(lambda s: features.scene_features(s, CFG.features))(state)
+  params = encoder.with_new_inputs(tiny_models.encoder, cfg)
+  assert {"in_lane", "head_lane"} <= set(params["params"]) and "in_lane" not in tiny_models.encoder["params"]
+  like = jax.eval_shape(lambda: encoder.init(jax.random.key(0), feats, cfg))
+  assert jax.tree_util.tree_structure(like) == jax.tree_util.tree_structure(params)
+  run = jax.jit(encoder.apply, static_argnums=2)
+  before, after = run(tiny_models.encoder, feats, CFG.encoder), run(params, feats, cfg)
+  np.testing.assert_allclose(np.asarray(after.trajectories), np.asarray(before.trajectories), atol=1e-5)
+  np.testing.assert_allclose(np.asarray(after.probs), np.asarray(before.probs), atol=1e-6)
+  grad = jax.grad(lambda p: jnp.sum(encoder.apply(p, feats, cfg).trajectories ** 2))(params)["params"]
+  assert float(jnp.abs(grad["head_lane"]["kernel"]).sum()) > 0
 
 
 def _exhaustive(feats) -> np.ndarray:

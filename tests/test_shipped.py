@@ -43,3 +43,27 @@ def test_shipped_model_has_a_card_and_drives_the_real_record(model, real_state):
   assert float(np.linalg.norm(xy - log, axis=-1)[both].mean()) < 1.0
   enc, enc_cfg = pcdiff_jax.pretrained(stage="encoder")
   assert enc_cfg.encoder == cfg.encoder
+
+
+def test_shipped_simpl_ar_baseline_has_its_own_lane_aware_encoder(model, real_state):
+  """The SIMPL-AR baseline ships its own encoder (simpl_ar/, `finetune --policy
+  simpl-ar --lane-inputs`): it loads with one call, differs from the encoder
+  our policy conditions on, and its most likely proposal on the real record is
+  within a few metres of where each logged agent is 1 s later."""
+  from pcdiff_jax.model import encoder, features
+  _, cfg = model
+  params, sa_cfg = pcdiff_jax.pretrained(stage="simpl-ar")
+  assert sa_cfg.encoder.lane_inputs and not cfg.encoder.lane_inputs
+  assert "in_lane" in params["params"]
+  start = env.reset(real_state)
+  feats = features.scene_features(start, sa_cfg.features)
+  out = jax.jit(encoder.apply, static_argnums=2)(params, feats, sa_cfg.encoder)
+  xy, _ = encoder.proposals_to_world(out, feats)                              # (A, K, T, 2)
+  top = np.asarray(out.probs).argmax(-1)
+  at_1s = np.asarray(xy)[np.arange(top.shape[0]), top, 9]                     # step t + 10
+  obj = np.asarray(feats.agent_index)
+  t = env.WOMD_INIT_STEPS - 1 + 10
+  log = np.asarray(real_state.log_trajectory.xy)[obj, t]
+  ok = np.asarray(feats.agent_valid) & np.asarray(real_state.log_trajectory.valid)[obj, t]
+  assert ok.sum() > 20
+  assert float(np.median(np.linalg.norm(at_1s - log, axis=-1)[ok])) < 2.0

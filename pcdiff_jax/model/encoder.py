@@ -67,7 +67,9 @@ from flax import struct
 
 from pcdiff_jax.config import EncoderConfig
 from pcdiff_jax.model import features as features_lib
+from pcdiff_jax.model import lane_context
 from pcdiff_jax.model.features import SceneFeatures
+from pcdiff_jax.model.lane_context import LANE_DIM
 from pcdiff_jax.sim.datatypes import Array
 
 _NEG = -1e9            # attention logit of a masked sender
@@ -318,6 +320,10 @@ class SceneEncoder(nn.Module):
         hist, feats.agent_history_valid & av[:, None])                 # (A, d)
     polys = MapNet(d, name="map_net")(pts, feats.map_types, feats.map_kind,
                                       feats.map_traffic_light)        # (M, d)
+    lane = None
+    if cfg.lane_inputs:   # zero-initialised: a model trained without them is unchanged at first
+      lane = lane_context.lane_inputs(feats)                          # (A, LANE_DIM)
+      agents = agents + nn.Dense(d, kernel_init=nn.initializers.zeros, name="in_lane")(lane)
     h = jnp.concatenate([agents, polys], 0)                           # (N, d)
     valid = jnp.concatenate([av, mv], 0)                              # (N,)
     centre = jnp.where(valid[:, None], jnp.concatenate([feats.agent_center, feats.map_center]), 0.0)
@@ -334,11 +340,14 @@ class SceneEncoder(nn.Module):
                       name=f"sft_{layer}")(h, e, idx, mask, deterministic)
     num_agents = av.shape[0]
     agent_tokens, map_tokens = h[:num_agents], h[num_agents:]
+    head_in = agent_tokens
+    if lane is not None:   # a short path from where the lane goes to the proposals' shape
+      head_in = head_in + nn.Dense(d, kernel_init=nn.initializers.zeros, name="head_lane")(lane)
 
     speed = hist[:, -1, _VX]                                          # (A,) agent frame
     logits, ctrl = ProposalHead(d, cfg.num_modes, cfg.bezier_degree, cfg.proposal_scale,
                                 cfg.anchor_velocity, cfg.horizon * _DT,
-                                name="head")(agent_tokens, speed)
+                                name="head")(head_in, speed)
     basis, deriv = bezier_basis(cfg.bezier_degree, cfg.horizon)
     ctrl = jnp.where(av[:, None, None, None], ctrl, 0.0)              # padded agents stand still
     traj = jnp.einsum("ts,aksc->aktc", basis, ctrl)                  # (A, K, T, 2)
@@ -362,6 +371,18 @@ def init(rng: Array, feats: SceneFeatures, config: EncoderConfig) -> Any:
   """Parameters of the encoder for features of this padded size (batched or not)."""
   # Jitted: an eager init compiles every op on its own (tens of seconds on CPU).
   return jax.jit(SceneEncoder(config).init)(rng, _first(feats))
+
+
+def with_new_inputs(params: Any, config: EncoderConfig) -> Any:
+  """Parameters of an encoder trained without the optional inputs that
+  `config` turns on (`lane_inputs`), extended by their zero-initialised
+  projections: the extended encoder computes the same function until trained."""
+  inner = params["params"]
+  zero = lambda: {"kernel": jnp.zeros((LANE_DIM, config.d_model), jnp.float32),
+                  "bias": jnp.zeros((config.d_model,), jnp.float32)}
+  if config.lane_inputs:
+    inner = {**inner, **{name: zero() for name in ("in_lane", "head_lane") if name not in inner}}
+  return {**params, "params": inner}
 
 
 def apply(params: Any, feats: SceneFeatures, config: EncoderConfig,

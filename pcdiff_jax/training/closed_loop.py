@@ -260,18 +260,21 @@ def make_collect_fn(actor, model_cfg: Config, cfg: OnPolicyConfig, teacher=None)
 
 def collect(models: Models, model_cfg: Config, policy_cfg, paths: Sequence[str], cfg: OnPolicyConfig,
             first: int, count: int, batch_size: int = 4, seed: int = 0,
-            progress: bool = True, teacher=None) -> tuple[Example, dict]:
+            progress: bool = True, teacher=None, actor=None) -> tuple[Example, dict]:
   """On-policy examples of training scenes [first, first + count) of `paths`.
 
   `model_cfg` is the config the policy runs with (its agent cap: the SDC and
   every evaluated agent, `evaluation.with_agent_cap`). Returns numpy
   Example (N, ...) and info {"scenes", "skipped", "usable_agents",
-  "mean_offset"}. teacher: the guided policy of "guided" targets. A scenario that fails is skipped with a warning.
+  "mean_offset"}. teacher: the guided policy of "guided" targets. actor: roll
+  this Actor out instead of the diffusion policy (`models` are then its
+  params, e.g. the SIMPL-AR baseline with its encoder's). A scenario that
+  fails is skipped with a warning.
   """
   from tqdm.auto import tqdm
   from pcdiff_jax import evaluation, policy
   from pcdiff_jax.data import womd
-  actor = policy.actor(model_cfg, policy_cfg)
+  actor = actor if actor is not None else policy.actor(model_cfg, policy_cfg)
   fn = make_collect_fn(actor, model_cfg, cfg, teacher)
   chunks, skipped, done = [], [], 0
   batches = womd.iterate(paths, batch_size=batch_size, with_meta=True, on_error="skip",

@@ -24,6 +24,10 @@ from pcdiff_jax.training import encoder_loss, perturb, trainer
 from pcdiff_jax.training.data import Example
 
 STAGE_DIR = "encoder"
+# The SIMPL-AR baseline's own encoder, when a model folder has one: stage 1
+# fine-tuned on SIMPL-AR's closed-loop states (`experiments.finetune --policy
+# simpl-ar`). The diffusion policy always reads STAGE_DIR.
+SIMPL_AR_DIR = "simpl_ar"
 # Config sections that define this stage: a resumed run must match them.
 CONFIG_SECTIONS = ("features", "encoder", "encoder_train")
 
@@ -87,9 +91,9 @@ def train(cfg: Config, train_examples: Example, val_examples: Optional[Example],
                      schedule=trainer.learning_rate_schedule(tc), compare=CONFIG_SECTIONS, mesh=mesh)
 
 
-def load(workdir: str) -> tuple[Any, Config]:
-  """(params, Config) of the latest stage-1 checkpoint in WORKDIR/encoder."""
-  ckpt = trainer.Checkpointer(os.path.join(workdir, STAGE_DIR), read_only=True)
+def load(workdir: str, stage_dir: str = STAGE_DIR) -> tuple[Any, Config]:
+  """(params, Config) of the latest stage-1 checkpoint in WORKDIR/<stage_dir>."""
+  ckpt = trainer.Checkpointer(os.path.join(workdir, stage_dir), read_only=True)
   try:
     cfg = config_lib.from_dict(ckpt.read_config())
     params = ckpt.restore_raw()["params"]
@@ -97,6 +101,17 @@ def load(workdir: str) -> tuple[Any, Config]:
     ckpt.close()
   check_params(params, cfg, ckpt.directory)
   return params, cfg
+
+
+def simpl_ar_dir(workdir: str) -> str:
+  """The stage folder SIMPL-AR reads in WORKDIR: its own (SIMPL_AR_DIR) when
+  there is one, else the shared encoder's."""
+  return SIMPL_AR_DIR if os.path.isdir(os.path.join(workdir, SIMPL_AR_DIR)) else STAGE_DIR
+
+
+def load_simpl_ar(workdir: str) -> tuple[Any, Config]:
+  """(params, Config) of the encoder the SIMPL-AR baseline runs with in WORKDIR."""
+  return load(workdir, simpl_ar_dir(workdir))
 
 
 def check_params(params: Any, cfg: Config, where: str) -> None:
