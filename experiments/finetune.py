@@ -14,8 +14,9 @@ round's model is WORKDIR itself (WORKDIR/diffusion, WORKDIR/encoder), so
 again after an interruption: finished rounds are kept, the current one resumes.
 
 --policy simpl-ar does the same for the SIMPL-AR baseline (CAT-K on its own
-closed loop): each round rolls SIMPL-AR out with its current encoder and
-fine-tunes that encoder alone (--encoder-steps) on the mixed batches. Its
+closed loop): each round rolls SIMPL-AR out with its current encoder (at
+first --from's: simpl_ar/ where it has one, else encoder/) and fine-tunes
+that encoder alone (--encoder-steps) on the mixed batches. Its
 encoder goes to WORKDIR/simpl_ar (read by `--method simpl-ar` and
 `pretrained(stage="simpl-ar")`); the diffusion policy and its encoder are
 copied unchanged from --from:
