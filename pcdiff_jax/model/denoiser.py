@@ -35,7 +35,7 @@ from flax import struct
 
 from pcdiff_jax.config import DenoiserConfig
 from pcdiff_jax.model.encoder import relative_pose
-from pcdiff_jax.model.lane_context import LANE_DIM
+from pcdiff_jax.model import lane_context
 from pcdiff_jax.sim.datatypes import Array
 
 _NEG = -1e9
@@ -176,8 +176,7 @@ def with_new_inputs(params: Any, config: DenoiserConfig) -> Any:
   the extended model computes the same function until it is trained."""
   inner = params["params"]
   if config.lane_inputs and "in_lane" not in inner:
-    inner = {**inner, "in_lane": {"kernel": jnp.zeros((LANE_DIM, config.d_model), jnp.float32),
-                                  "bias": jnp.zeros((config.d_model,), jnp.float32)}}
+    inner = {**inner, "in_lane": lane_context.zero_projection(config.d_model)}
   return {**params, "params": inner}
 
 

@@ -69,7 +69,6 @@ from pcdiff_jax.config import EncoderConfig
 from pcdiff_jax.model import features as features_lib
 from pcdiff_jax.model import lane_context
 from pcdiff_jax.model.features import SceneFeatures
-from pcdiff_jax.model.lane_context import LANE_DIM
 from pcdiff_jax.sim.datatypes import Array
 
 _NEG = -1e9            # attention logit of a masked sender
@@ -378,10 +377,9 @@ def with_new_inputs(params: Any, config: EncoderConfig) -> Any:
   `config` turns on (`lane_inputs`), extended by their zero-initialised
   projections: the extended encoder computes the same function until trained."""
   inner = params["params"]
-  zero = lambda: {"kernel": jnp.zeros((LANE_DIM, config.d_model), jnp.float32),
-                  "bias": jnp.zeros((config.d_model,), jnp.float32)}
   if config.lane_inputs:
-    inner = {**inner, **{name: zero() for name in ("in_lane", "head_lane") if name not in inner}}
+    inner = {**inner, **{name: lane_context.zero_projection(config.d_model)
+                         for name in ("in_lane", "head_lane") if name not in inner}}
   return {**params, "params": inner}
 
 

@@ -117,6 +117,13 @@ def _one_scene(feats: SceneFeatures) -> Array:
   return jnp.where(feats.agent_valid[:, None], out, 0.0)
 
 
+def zero_projection(d_model: int) -> dict:
+  """Parameters of a zero-initialised Dense(LANE_DIM -> d_model): how a model
+  trained without lane inputs gets them (`denoiser.with_new_inputs`,
+  `encoder.with_new_inputs`) and still computes the same function."""
+  return {"kernel": jnp.zeros((LANE_DIM, d_model), jnp.float32), "bias": jnp.zeros((d_model,), jnp.float32)}
+
+
 def lane_inputs(feats: SceneFeatures) -> Array:
   """(..., A, LANE_DIM) lane-relative inputs of every agent (module doc)."""
   batch = feats.agent_valid.shape[:-1]
