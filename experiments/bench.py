@@ -22,7 +22,11 @@ split into encode (features + encoder + proposal latents), sample (DDIM) and
 decode (latent -> actions -> rollout with f); its scaling with the padded
 agent count (8-128), DDIM steps and scenarios per call (vmap); and the
 80-step closed loop as one fused `lax.scan` against a Python loop calling the
-jitted step. Compile time is excluded and reported separately.
+jitted step. These rows plan with one sample (`select_samples=1`); the
+default sample selection (S = 4) gets its own rows: a cold replanning
+(`replan_select4`) and the 80-step closed loop with every default
+(`fused_default_ms_per_step`, and the same with one sample). Compile time is
+excluded and reported separately.
 
 `devices`: data-parallel training steps/s (the stage-1 step, the preset's
 global batch split over N devices) and scenario-parallel closed-loop scenes/s
@@ -167,7 +171,8 @@ def bench_replan_parts(state, cfg, ddim_steps: int, repeats: int) -> dict:
     actions = dynamics.clip_action(latent.decode(y0, m.stats), cfg.kinematics)
     return actions, features.agent_to_world(states[..., :2], states[..., 2], feats)
 
-  pcfg = policy.PolicyConfig(ddim_steps=ddim_steps)
+  pcfg = policy.PolicyConfig(ddim_steps=ddim_steps, select_samples=1)
+  select = policy.PolicyConfig(ddim_steps=ddim_steps)   # the default sample selection
   feats, cond = jax.jit(encode)(models, state)
   y0 = jax.jit(sample)(models, cond, rng)
   row = {"agents": cfg.features.max_agents, "ddim_steps": ddim_steps,
@@ -175,7 +180,9 @@ def bench_replan_parts(state, cfg, ddim_steps: int, repeats: int) -> dict:
          "sample": _compiled_ms(sample, (models, cond, rng), repeats),
          "decode": _compiled_ms(decode, (models, feats, cond, y0), repeats),
          "replan": _compiled_ms(lambda m, s, r: policy.plan_actions(m, s, cfg, pcfg, r),
-                                (models, state, rng), repeats)}
+                                (models, state, rng), repeats),
+         f"replan_select{select.select_samples}": _compiled_ms(
+             lambda m, s, r: policy.plan_actions(m, s, cfg, select, r), (models, state, rng), repeats)}
   return row
 
 
@@ -183,7 +190,7 @@ def bench_replan_batch(state, cfg, batch_sizes: list[int], repeats: int) -> list
   """One replanning per scenario, vmapped over B copies of the scene."""
   from pcdiff_jax import policy
   models = _policy_models(state, cfg)
-  pcfg = policy.PolicyConfig(ddim_steps=cfg.diffusion.ddim_steps)
+  pcfg = policy.PolicyConfig(ddim_steps=cfg.diffusion.ddim_steps, select_samples=1)
   rows = []
   for b in batch_sizes:
     batch = jax.tree_util.tree_map(lambda a: np.repeat(np.asarray(a)[None], b, 0), state)
@@ -200,7 +207,8 @@ def bench_fused_vs_loop(state, cfg, num_steps: int, repeats: int) -> dict:
   from pcdiff_jax import policy
   from pcdiff_jax.sim import env
   models = _policy_models(state, cfg)
-  actor = policy.actor(cfg, policy.PolicyConfig(ddim_steps=cfg.diffusion.ddim_steps, warm_start=False))
+  actor = policy.actor(cfg, policy.PolicyConfig(ddim_steps=cfg.diffusion.ddim_steps, warm_start=False,
+                                                select_samples=1))
   rng = jax.random.PRNGKey(0)
   start = env.reset(state)
   fused = lambda s, r, m: env.rollout(s, actor, num_steps, r, params=m).final_state
@@ -219,14 +227,22 @@ def bench_fused_vs_loop(state, cfg, num_steps: int, repeats: int) -> dict:
 
   jax.block_until_ready(python_loop(start, rng, models))          # compile
   loop_times = _time(lambda: python_loop(start, rng, models), repeats)
-  # Warm-started replanning (the default: 2 DDIM steps from step 30 after the first plan).
-  warm = policy.actor(cfg, policy.PolicyConfig(ddim_steps=cfg.diffusion.ddim_steps, warm_start=True))
+  # Warm-started replanning (2 DDIM steps from step 30 after the first plan), one sample.
+  warm = policy.actor(cfg, policy.PolicyConfig(ddim_steps=cfg.diffusion.ddim_steps, warm_start=True,
+                                               select_samples=1))
   warm_t = _compiled_ms(lambda s, r, m: env.rollout(s, warm, num_steps, r, params=m).final_state,
                         (start, rng, models), repeats)
-  return {"agents": cfg.features.max_agents, "steps": num_steps,
-          "fused_ms_per_step": fused_t["ms"] / num_steps, "fused_compile_s": fused_t["compile_s"],
-          "loop_ms_per_step": 1000 * float(np.median(loop_times)) / num_steps,
-          "fused_warm_start_ms_per_step": warm_t["ms"] / num_steps}
+  row = {"agents": cfg.features.max_agents, "steps": num_steps,
+         "fused_ms_per_step": fused_t["ms"] / num_steps, "fused_compile_s": fused_t["compile_s"],
+         "loop_ms_per_step": 1000 * float(np.median(loop_times)) / num_steps,
+         "fused_warm_start_ms_per_step": warm_t["ms"] / num_steps}
+  # The default policy (warm start, temporal ensemble, sample selection) and it without selection.
+  for name, samples in (("fused_default_ms_per_step", policy.PolicyConfig.select_samples),
+                        ("fused_default_select1_ms_per_step", 1)):
+    act = policy.actor(cfg, policy.PolicyConfig(select_samples=samples))
+    row[name] = _compiled_ms(lambda s, r, m: env.rollout(s, act, num_steps, r, params=m).final_state,
+                             (start, rng, models), repeats)["ms"] / num_steps
+  return row
 
 
 def bench_policy(path: str, preset: str, agent_counts: list[int], ddim_steps: list[int],

@@ -32,8 +32,8 @@ from pcdiff_jax import shipped
 from pcdiff_jax.config import get_config
 
 METHODS = ("pcdiff", "simpl-ar", "idm", "cv")
-LABELS = {"pcdiff": "ours (prior, 5 DDIM steps, then warm-started)", "simpl-ar": "SIMPL-AR", "idm": "IDM",
-          "cv": "constant velocity"}
+LABELS = {"pcdiff": "ours (prior, 5 DDIM steps, then warm-started; 4 samples, least-colliding kept)",
+          "simpl-ar": "SIMPL-AR", "idm": "IDM", "cv": "constant velocity"}
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -114,7 +114,7 @@ def main(argv=None) -> int:
   for method in args.methods:
     argv = ["--scenarios", os.path.join(data, "val-*"), "--method", method,
             "--out", os.path.join(args.out, "eval", method), "--batch-size", str(args.batch_size),
-            "--max-agents", str(max_agents), "--gifs", "2"]
+            "--max-agents", str(max_agents), "--gifs", "1"]
     if method in ("pcdiff", "simpl-ar"):
       argv += ["--checkpoint", model, "--ddim-steps", "5"]
     if method == "pcdiff" and not args.warm_start:

@@ -210,9 +210,11 @@ def main(argv=None) -> int:
     teacher = None
     if args.targets == "guided":
       from pcdiff_jax.model import guidance
-      teacher = policy.PolicyConfig(ddim_steps=5, warm_start=False, guidance=guidance.GuidanceConfig(
+      teacher_guidance = guidance.GuidanceConfig(
           mode="objective", w_map=args.teacher_w_map, w_coll=args.teacher_w_coll,
-          guided_steps=args.teacher_guided_steps, inner_steps=args.teacher_inner_steps))
+          guided_steps=args.teacher_guided_steps, inner_steps=args.teacher_inner_steps)
+      teacher = policy.PolicyConfig(ddim_steps=5, warm_start=False, select_samples=1,
+                                    guidance=teacher_guidance)
     tc = model_cfg.diffusion_train
     tc = dataclasses.replace(tc, total_steps=args.steps, learning_rate=args.learning_rate,
                              warmup_steps=min(50, args.steps // 10), eval_every=args.steps,
@@ -232,8 +234,11 @@ def main(argv=None) -> int:
       if os.path.exists(path):
         on_policy, info = data_lib.read_examples(path)
       else:
+        # The rounds of every shipped model rolled the policy out without sample selection:
+        # the on-policy states should show the model's own drift, not the collision filter's fixes.
         on_policy, info = closed_loop.collect(
-            models, run_cfg, policy.PolicyConfig(), files, ocfg, first=args.first_scene + r * args.scenes,
+            models, run_cfg, policy.PolicyConfig(select_samples=1), files, ocfg,
+            first=args.first_scene + r * args.scenes,
             count=args.scenes, batch_size=args.rollout_batch, seed=args.seed + r,
             progress=not args.no_progress, teacher=teacher, actor=actor)
         info["minutes"] = (time.time() - t0) / 60

@@ -53,6 +53,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                  default=evaluation.EvalConfig.temporal_ensemble,
                  help="pcdiff: weights in [0, 1) of the earlier plans in the executed plan, per action "
                       "channel (exponential temporal ensembling: smooths the executed actions; 0 = off)")
+  p.add_argument("--select-samples", type=int, default=evaluation.EvalConfig.select_samples,
+                 help="pcdiff: draw this many joint plans per replan and keep, per agent, the one whose "
+                      "plan overlaps the others' least over 3 s (1 = off; S times the denoiser's work)")
   p.add_argument("--simpl-ar-sample", action="store_true",
                  help="simpl-ar: draw each agent's mode by its probability (default: the top mode)")
   p.add_argument("--num-rollouts", type=int, default=1,
@@ -93,7 +96,7 @@ def parse_args(argv=None) -> argparse.Namespace:
   if args.method in evaluation.LEARNED and not args.checkpoint:
     p.error(f"--method {args.method} needs --checkpoint WORKDIR")
   for name in ("num_steps", "max_agents", "batch_size", "ddim_steps", "replan_every", "num_rollouts",
-               "seeds"):
+               "seeds", "select_samples"):
     if getattr(args, name) < 1:
       p.error(f"--{name.replace('_', '-')} must be >= 1")
   if not 0 <= args.warm_step <= 99:
@@ -133,7 +136,7 @@ def main(argv=None) -> int:
                               max_scenarios=args.max_scenarios, warm_start=args.warm_start,
                               warm_step=args.warm_step, warm_ddim_steps=args.warm_ddim_steps,
                               temporal_ensemble=tuple(args.temporal_ensemble),
-                              simpl_ar_sample=args.simpl_ar_sample,
+                              simpl_ar_sample=args.simpl_ar_sample, select_samples=args.select_samples,
                               metrics=MetricsConfig(max_reactive_agents=args.max_agents),
                               guidance=GuidanceConfig(
                                   mode=args.guidance, w_map=args.w_map, w_coll=args.w_coll,

@@ -54,7 +54,9 @@ class EvalConfig:
   max_scenarios: the first N scenarios of the files only. warm_start,
   warm_step, warm_ddim_steps: amortised replanning of the diffusion policies,
   temporal_ensemble: their executed plan averaged over replans
-  (`policy.PolicyConfig`). simpl_ar_sample: SIMPL-AR draws its modes by their
+  (`policy.PolicyConfig`). select_samples: the diffusion policies draw that
+  many joint plans per replan and keep, per agent, the one that collides
+  least (`PolicyConfig.select_samples`). simpl_ar_sample: SIMPL-AR draws its modes by their
   probabilities instead of taking the top mode.
 
   The learned methods model up to `metrics.max_reactive_agents` + 1 agents
@@ -87,6 +89,7 @@ class EvalConfig:
   warm_ddim_steps: int = 2
   temporal_ensemble: tuple[float, float] = (0.3, 0.0)
   simpl_ar_sample: bool = False
+  select_samples: int = 4
 
   @property
   def adversarial_scores(self) -> bool:
@@ -133,7 +136,8 @@ def _method_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
                              consistent_noise=cfg.consistent_noise, execute=cfg.execute,
                              prior_centre=cfg.prior_centre, warm_start=cfg.warm_start,
                              warm_step=cfg.warm_step, warm_ddim_steps=cfg.warm_ddim_steps,
-                             temporal_ensemble=cfg.temporal_ensemble)
+                             temporal_ensemble=cfg.temporal_ensemble,
+                             select_samples=cfg.select_samples)
   return policy.actor(with_agent_cap(model_cfg, cfg.metrics), pcfg), models
 
 

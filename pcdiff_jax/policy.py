@@ -35,7 +35,7 @@ from flax import struct
 from pcdiff_jax.config import Config
 from pcdiff_jax.model import features as features_lib
 from pcdiff_jax.model import guidance as guidance_lib
-from pcdiff_jax.model import latent, planner
+from pcdiff_jax.model import joint_selection, latent, planner
 from pcdiff_jax.model.planner import Models
 from pcdiff_jax.sim import action_spaces, dynamics, geometry
 from pcdiff_jax.sim.actors import Actor, ActorOutput
@@ -91,6 +91,18 @@ class PolicyConfig:
   50 val scenes realism W1 1.09 -> 0.71 at the same collision and off-road
   rates; averaging the yaw rate too (0.5, 0.5) cost 4 points of each, as
   did a warm start closer to the previous plan (docs/RESULTS.md, "Models v5").
+
+  select_samples: S > 1 draws S joint plans per replan (one batched chain)
+  and keeps, per agent, the sample that collides least with the others'
+  chosen samples over the first `select_lookahead` steps (iterated
+  conditional modes, `model.joint_selection`: the mechanism SIMPL-AR uses
+  over its proposals). Samples are equally likely, so an agent keeps sample 0
+  (what S = 1 would have executed) unless another avoids an overlap; the SDC
+  (slot 0, on its log) and an adversarial pursuer never change. No objective
+  gradient: S times the denoiser's work per replan. Default 4 since session 8 (docs/RESULTS.md,
+  "Sample selection"): on the first 50 val scenes at 10 Hz, S = 1 / 2 / 4 / 8
+  gave 10.7 / 6.0 / 4.3 / 4.3% collisions and 7.1 / 6.6 / 6.1 / 6.2% off-road
+  at the same realism and minADE.
   """
   ddim_steps: int = 5
   eta: float = 0.0
@@ -105,6 +117,8 @@ class PolicyConfig:
   warm_step: int = 30
   warm_ddim_steps: int = 2
   temporal_ensemble: tuple[float, float] = (0.3, 0.0)
+  select_samples: int = 4
+  select_lookahead: int = 30
 
 
 @struct.dataclass
@@ -182,10 +196,14 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
   cond = planner.condition(models.encoder, models.stats, batched, cfg)
   if policy.prior_centre == "top1":
     cond = planner.centre_on_top_mode(cond)
+  init_noise = None if noise is None else noise[feats.agent_index][None]   # (1, A, d)
+  if policy.select_samples > 1:   # S candidate plans as a batch of S copies of the scene
+    tile = lambda a: jnp.repeat(a, policy.select_samples, axis=0)
+    batched, cond = jax.tree_util.tree_map(tile, (batched, cond))
+    init_noise = None if init_noise is None else tile(init_noise)
   if road is None:
     road = guidance_lib.road_of(state, policy.guidance)
   guide = _guide(models, state, batched, cond, cfg, policy.guidance, jnp.asarray(adversary, jnp.int32), road)
-  init_noise = None if noise is None else noise[feats.agent_index][None]   # (1, A, d)
   if warm is None:
     steps = policy.guidance.guide_steps(policy.ddim_steps) if guide is not None else None
     y0 = planner.sample(models.denoiser, cond, cfg, rng, policy.ddim_steps, policy.eta,
@@ -202,6 +220,10 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
         guide=guide, cold_guide_steps=g.guide_steps(policy.ddim_steps) if guide is not None else None,
         warm_guide_steps=g.guide_steps(policy.warm_ddim_steps) if guide is not None else None,
         init_noise=init_noise)
+  if policy.select_samples > 1:   # the SDC (slot 0, on its log) and an adversarial pursuer keep sample 0
+    pursuer = (feats.agent_index == adversary) & (adversary >= 0)
+    keep = (jnp.arange(feats.agent_valid.shape[0]) == 0) | pursuer
+    y0 = select_sample(y0, models, cond, batched, cfg, policy.select_lookahead, keep)
   actions = dynamics.clip_action(latent.decode(y0[0], models.stats), cfg.kinematics)  # (A, T, 2)
   if policy.execute == "track":   # the world-frame path is only needed to track it
     states = dynamics.rollout(latent.initial_states(cond.speed[0]), actions, cfg.kinematics.dt)
@@ -212,6 +234,24 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
   per_object = features_lib.scatter_to_objects(actions, feats, num_objects)
   planned = features_lib.scatter_to_objects(feats.agent_valid, feats, num_objects, fill=False)
   return per_object, planned.astype(bool), features_lib.scatter_to_objects(path, feats, num_objects)
+
+
+def select_sample(y0: Array, models: Models, cond: planner.Conditioning, batched, cfg: Config,
+                  lookahead: int, keep: Array) -> Array:
+  """(1, A, d): per agent, one of the S joint samples y0 (S, A, d) of one scene
+  (cond, batched: that scene repeated S times) such that the chosen plans
+  overlap least over their first `lookahead` steps (`PolicyConfig.select_samples`);
+  agents where keep (A,) keep sample 0."""
+  states = planner.decode_states(models.stats, cond, y0, cfg)[..., :lookahead, :]   # (S, A, L, 4)
+  xy, yaw = planner.to_scene(states, batched)
+  feats = jax.tree_util.tree_map(lambda a: a[0], batched)
+  length, width = planner.agent_size(feats)
+  coll = joint_selection.collision_counts(jnp.moveaxis(xy, 0, 1), jnp.moveaxis(yaw, 0, 1),
+                                          length, width, feats.agent_valid)   # (A, S, A, S)
+  num = feats.agent_valid.shape[0]
+  choice = joint_selection.iterated_conditional_modes(
+      jnp.zeros((num, y0.shape[0])), coll, feats.agent_valid & ~keep, 1.0, sweeps=2, order=jnp.arange(num))
+  return jnp.take_along_axis(y0, choice[None, :, None], axis=0)
 
 
 EXECUTE = ("actions", "track")
@@ -338,6 +378,10 @@ def validate(cfg: Config, policy: PolicyConfig) -> None:
   if not 1 <= policy.warm_ddim_steps <= policy.warm_step + 1:
     raise ValueError(f"warm_ddim_steps must be in [1, warm_step + 1 = {policy.warm_step + 1}], "
                      f"got {policy.warm_ddim_steps}")
+  if not 1 <= policy.select_samples <= 64:
+    raise ValueError(f"select_samples must be in [1, 64], got {policy.select_samples}")
+  if not 1 <= policy.select_lookahead <= cfg.encoder.horizon:
+    raise ValueError(f"select_lookahead must be in [1, {cfg.encoder.horizon}], got {policy.select_lookahead}")
   policy.guidance.validate()
 
 

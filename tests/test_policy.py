@@ -241,3 +241,46 @@ def test_temporal_ensemble_averages_the_plans_made_for_each_step(models):
   np.testing.assert_allclose(np.asarray(second.action.data)[controlled], expect[controlled], atol=1e-5)
   with pytest.raises(ValueError, match="temporal_ensemble"):
     policy.actor(CFG, policy.PolicyConfig(temporal_ensemble=(1.0, 0.0)))
+
+
+def test_sample_selection_keeps_the_least_colliding_joint_plan(models):
+  from pcdiff_jax.model import features as features_lib
+  from pcdiff_jax.model import joint_selection
+  state = env.reset(make_scene(num_steps=91))
+  feats = features_lib.scene_features(state, CFG.features)
+  s = 3
+  batched = jax.tree_util.tree_map(lambda a: jnp.repeat(a[None], s, 0), feats)
+  cond = planner.condition(models.encoder, models.stats, batched, CFG)
+  y0 = 3.0 * jax.random.normal(jax.random.key(0), cond.mu.shape)          # widely spread plans
+
+  def overlaps(choice):
+    states = planner.decode_states(models.stats, cond, y0, CFG)[..., :30, :]
+    xy, yaw = planner.to_scene(states, batched)
+    length, width = planner.agent_size(feats)
+    coll = joint_selection.collision_counts(jnp.moveaxis(xy, 0, 1), jnp.moveaxis(yaw, 0, 1),
+                                            length, width, feats.agent_valid)
+    num = len(choice)
+    return float(coll[jnp.arange(num)[:, None], choice[:, None], jnp.arange(num)[None], choice[None]].sum())
+
+  keep = jnp.arange(feats.agent_valid.shape[0]) == 0
+  chosen = policy.select_sample(y0, models, cond, batched, CFG, 30, keep)
+  assert chosen.shape == (1,) + y0.shape[1:]
+  choice = jnp.argmax(jnp.all(chosen == y0, -1), 0)                      # (A,) the sample each agent kept
+  assert int(choice[0]) == 0                                              # the SDC keeps sample 0
+  assert overlaps(choice) <= overlaps(jnp.zeros_like(choice))
+  # Equally likely candidates without overlaps: everyone keeps sample 0.
+  free = joint_selection.iterated_conditional_modes(jnp.zeros((4, 3)), jnp.zeros((4, 3, 4, 3)),
+                                                    jnp.ones(4, bool), 1.0, 2, jnp.arange(4))
+  assert free.tolist() == [0, 0, 0, 0]
+  # In closed loop: one program, finite actions.
+  act = policy.actor(CFG, policy.PolicyConfig(ddim_steps=2, select_samples=s))
+  select = jax.jit(act.select_action)
+  ps = act.init(jax.random.key(0), state)
+  for k in range(2):
+    out = select(models, state, ps, jax.random.key(k))
+    ps = out.actor_state
+    assert bool(jnp.all(jnp.isfinite(out.action.data)))
+    state = env.step(state, out.action, out.is_controlled)
+  assert select._cache_size() == 1
+  with pytest.raises(ValueError, match="select_samples"):
+    policy.actor(CFG, policy.PolicyConfig(select_samples=0))

@@ -25,10 +25,10 @@ import jax
 import jax.numpy as jnp
 
 from pcdiff_jax.config import Config
-from pcdiff_jax.model import encoder, latent
+from pcdiff_jax.model import encoder, joint_selection, latent
 from pcdiff_jax.model import features as features_lib
 from pcdiff_jax.model import planner
-from pcdiff_jax.sim import dynamics, geometry
+from pcdiff_jax.sim import dynamics
 from pcdiff_jax.sim.actors import Actor, ActorOutput
 from pcdiff_jax.sim.datatypes import Action, Array
 
@@ -60,30 +60,7 @@ def tracking_action(path: Array, speed: Array, cfg: SimplARConfig, dt: float = 0
   return dynamics.pure_pursuit(path[:, j - 1], path[:, j - 2], speed, j, dt)
 
 
-def collision_counts(xy: Array, yaw: Array, length: Array, width: Array, valid: Array) -> Array:
-  """Pairwise overlap counts between every mode pair.
-
-  xy (A, K, L, 2), yaw (A, K, L) scene frame; length, width, valid (A,).
-  Returns (A, K, A, K): circle-pair overlaps summed over the L steps (0 on
-  the diagonal blocks and for padded agents).
-  """
-  num, k = xy.shape[:2]
-  c = geometry.box_circles(xy, yaw, length[:, None, None], width[:, None, None])       # (A, K, L, 3, 2)
-  r = width / 2.0
-  rr2 = ((r[:, None] + r[None, :]) ** 2)[:, None, None, :, None, None]    # (A, 1, 1, A, 1, 1)
-
-  def per_step(hits, ct):                                                  # ct (A, K, 3, 2)
-    # Squared distances of all circle pairs as one matmul (|a|^2 + |b|^2 - 2 a.b):
-    # the broadcast difference tensor was ~20x slower on CPU.
-    flat = ct.reshape(-1, 2)
-    sq = jnp.sum(flat ** 2, -1)
-    d2 = (sq[:, None] + sq[None, :] - 2.0 * flat @ flat.T).reshape(num, k, 3, num, k, 3)
-    return hits + jnp.sum(d2 < rr2, axis=(2, 5)), None
-
-  hits, _ = jax.lax.scan(per_step, jnp.zeros((num, k, num, k), jnp.int32), jnp.moveaxis(c, 2, 0))
-  hits = hits.astype(jnp.float32)
-  pair = valid[:, None] & valid[None, :] & ~jnp.eye(valid.shape[0], dtype=bool)
-  return jnp.where(pair[:, None, :, None], hits, 0.0)
+collision_counts = joint_selection.collision_counts   # kept here: SIMPL-AR's objective
 
 
 def select_modes(probs: Array, coll: Array, valid: Array, cfg: SimplARConfig,
@@ -97,19 +74,11 @@ def select_modes(probs: Array, coll: Array, valid: Array, cfg: SimplARConfig,
   unary = -jnp.log(jnp.maximum(probs, cfg.min_prob))                         # (A, K)
   if cfg.sample and rng is not None:
     unary = unary / cfg.temperature - jax.random.gumbel(rng, unary.shape)
-  modes = jnp.argmin(unary, -1)
-  num = probs.shape[0]
-
-  def update(i, modes):
-    # cost of each mode of agent i given the others' current modes
-    others = coll[i][:, jnp.arange(num), modes]                              # (K, A)
-    cost = unary[i] + cfg.collision_weight * jnp.sum(others, -1)
-    return modes.at[i].set(jnp.where(valid[i], jnp.argmin(cost), modes[i]))
-
   # The least confident agents yield first: a confident agent keeps its mode
   # unless the others cannot get out of its way.
   order = jnp.argsort(jnp.max(probs, -1))
-  return jax.lax.fori_loop(0, num * cfg.sweeps, lambda n, m: update(order[n % num], m), modes)
+  return joint_selection.iterated_conditional_modes(unary, coll, valid, cfg.collision_weight,
+                                                    cfg.sweeps, order)
 
 
 def plan_actions(encoder_params, state, cfg: Config, ar: SimplARConfig,
