@@ -99,10 +99,13 @@ class PolicyConfig:
   over its proposals). Samples are equally likely, so an agent keeps sample 0
   (what S = 1 would have executed) unless another avoids an overlap; the SDC
   (slot 0, on its log) and an adversarial pursuer never change. No objective
-  gradient: S times the denoiser's work per replan. Default 4 since session 8 (docs/RESULTS.md,
-  "Sample selection"): on the first 50 val scenes at 10 Hz, S = 1 / 2 / 4 / 8
-  gave 10.7 / 6.0 / 4.3 / 4.3% collisions and 7.1 / 6.6 / 6.1 / 6.2% off-road
-  at the same realism and minADE.
+  gradient: S times the denoiser's work per replan. With consistent_noise,
+  sample 0 starts from each object's fixed noise and sample k from the fixed
+  noise of the agent k slots further (the plan stays a function of the
+  scene). Default 4 since session 8 (docs/RESULTS.md, "Sample selection"): on
+  the first 50 val scenes at 10 Hz, S = 1 / 2 / 4 / 8 gave 10.7 / 6.0 / 4.3 /
+  4.3% collisions and 7.1 / 6.6 / 6.1 / 6.2% off-road at the same realism and
+  minADE.
   """
   ddim_steps: int = 5
   eta: float = 0.0
@@ -200,7 +203,10 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
   if policy.select_samples > 1:   # S candidate plans as a batch of S copies of the scene
     tile = lambda a: jnp.repeat(a, policy.select_samples, axis=0)
     batched, cond = jax.tree_util.tree_map(tile, (batched, cond))
-    init_noise = None if init_noise is None else tile(init_noise)
+    if init_noise is not None:
+      # Sample k starts from the consistent noise rolled by k over the agents: another
+      # Gaussian draw per agent, still a function of the rollout's noise (not of rng).
+      init_noise = jnp.concatenate([jnp.roll(init_noise, k, axis=1) for k in range(policy.select_samples)])
   if road is None:
     road = guidance_lib.road_of(state, policy.guidance)
   guide = _guide(models, state, batched, cond, cfg, policy.guidance, jnp.asarray(adversary, jnp.int32), road)

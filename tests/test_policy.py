@@ -272,8 +272,8 @@ def test_sample_selection_keeps_the_least_colliding_joint_plan(models):
   free = joint_selection.iterated_conditional_modes(jnp.zeros((4, 3)), jnp.zeros((4, 3, 4, 3)),
                                                     jnp.ones(4, bool), 1.0, 2, jnp.arange(4))
   assert free.tolist() == [0, 0, 0, 0]
-  # In closed loop: one program, finite actions.
-  act = policy.actor(CFG, policy.PolicyConfig(ddim_steps=2, select_samples=s))
+  # In closed loop (with consistent noise: each sample's its own draw): one program, finite actions.
+  act = policy.actor(CFG, policy.PolicyConfig(ddim_steps=2, select_samples=s, consistent_noise=True))
   select = jax.jit(act.select_action)
   ps = act.init(jax.random.key(0), state)
   for k in range(2):
