@@ -99,7 +99,9 @@ class PolicyConfig:
   over its proposals). Samples are equally likely, so an agent keeps sample 0
   (what S = 1 would have executed) unless another avoids an overlap; the SDC
   (slot 0, on its log) and an adversarial pursuer never change. No objective
-  gradient: S times the denoiser's work per replan. With consistent_noise,
+  gradient: the S chains share the encoder and the denoiser's context, and
+  cost 62 against 34 ms per cold 65-agent replan on 2 CPU cores
+  (docs/BENCHMARKS.md). With consistent_noise,
   sample 0 starts from each object's fixed noise and sample k from the fixed
   noise of the agent k slots further (the plan stays a function of the
   scene). Default 4 since session 8 (docs/RESULTS.md, "Sample selection"): on
@@ -200,9 +202,12 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
   if policy.prior_centre == "top1":
     cond = planner.centre_on_top_mode(cond)
   init_noise = None if noise is None else noise[feats.agent_index][None]   # (1, A, d)
+  one_scene = cond
   if policy.select_samples > 1:   # S candidate plans as a batch of S copies of the scene
     tile = lambda a: jnp.repeat(a, policy.select_samples, axis=0)
-    batched, cond = jax.tree_util.tree_map(tile, (batched, cond))
+    # The denoiser's inputs stay one copy: its context is computed once for all samples.
+    batched, cond = jax.tree_util.tree_map(tile, (batched, cond.replace(inputs=None)))
+    cond = cond.replace(inputs=one_scene.inputs)
     if init_noise is not None:
       # Sample k starts from the consistent noise rolled by k over the agents: another
       # Gaussian draw per agent, still a function of the rollout's noise (not of rng).

@@ -105,6 +105,17 @@ def test_diffusion_loss_finite_with_masked_agents(scene_example):
   y = jax.random.normal(jax.random.key(3), cond.mu.shape)
   out = denoiser_lib.apply(params, y, jnp.int32(50), cond.inputs, CFG.diffusion.denoiser)
   assert float(jnp.abs(out[0, 5:]).max()) == 0.0
+  # The y-independent context, computed once per chain (planner.sample), gives the same
+  # output, per scene or shared by several samples of one scene (sample selection).
+  dc, dim = CFG.diffusion.denoiser, y.shape[-1]
+  ctx = denoiser_lib.context(params, cond.inputs, dc, dim)
+  np.testing.assert_allclose(denoiser_lib.apply_with_context(params, y, jnp.int32(50), ctx, dc), out,
+                             rtol=1e-5, atol=1e-5)
+  ys = jnp.concatenate([y, 2.0 * y, -y])
+  shared = denoiser_lib.apply_with_context(params, ys, jnp.int32(50), ctx, dc)
+  tiled = jax.tree_util.tree_map(lambda a: jnp.repeat(a, 3, 0), cond.inputs)
+  np.testing.assert_allclose(shared, denoiser_lib.apply(params, ys, jnp.int32(50), tiled, dc),
+                             rtol=1e-5, atol=1e-5)
   del latent
 
 

@@ -89,6 +89,31 @@ def _attend(q: Array, k: Array, v: Array, mask: Array, heads: int) -> Array:
   return out.reshape(q.shape)
 
 
+class LayerContext(struct.PyTreeNode):
+  """One layer's projections of what does not change along a sampling chain:
+  edge keys/values (A, A, d), context keys/values (N, d), proposal keys/values
+  (A, K, d) (None without the prior)."""
+  edge_k: Array
+  edge_v: Array
+  ctx_k: Array
+  ctx_v: Array
+  prior_k: Optional[Array]
+  prior_v: Optional[Array]
+
+
+class DenoiserContext(struct.PyTreeNode):
+  """Everything the denoiser computes from its DenoiserInputs alone: the
+  agents' input tokens (A, d) (agent token and lane inputs, projected), the
+  masks and one LayerContext per layer. Computed once per scene and shared by
+  every step of a chain and by every sample of that scene (`context`)."""
+  base: Array
+  agent_mask: Array
+  ctx_mask: Array
+  prior_mask: Optional[Array]
+  agent_valid: Array
+  layers: tuple
+
+
 class DenoiserLayer(nn.Module):
   d_model: int
   num_heads: int
@@ -96,72 +121,111 @@ class DenoiserLayer(nn.Module):
   use_prior: bool
   dtype: Any = jnp.float32
 
-  @nn.compact
-  def __call__(self, h, edges, agent_mask, ctx, ctx_mask, prior, prior_mask, deterministic):
+  def setup(self):
     d = self.d_model
-    Dense = functools.partial(nn.Dense, dtype=self.dtype)
+    Dense = functools.partial(nn.Dense, d, dtype=self.dtype)
     LayerNorm = functools.partial(nn.LayerNorm, dtype=self.dtype)
-    drop = lambda x: nn.Dropout(self.dropout)(x, deterministic=deterministic)
+    self.ln_self, self.ln_ctx, self.ln_mlp = LayerNorm(), LayerNorm(), LayerNorm()
+    self.self_q, self.self_k, self.self_v, self.self_o = Dense(), Dense(), Dense(), Dense()
+    self.self_ek, self.self_ev = Dense(), Dense()
+    self.ctx_q, self.ctx_k, self.ctx_v, self.ctx_o = Dense(), Dense(), Dense(), Dense()
+    if self.use_prior:
+      self.ln_prior = LayerNorm()
+      self.prior_q, self.prior_k, self.prior_v, self.prior_o = Dense(), Dense(), Dense(), Dense()
+    self.mlp_in = nn.Dense(2 * d, dtype=self.dtype)
+    self.mlp_out = Dense()
+    self.drop = nn.Dropout(self.dropout)
+
+  def context(self, edges: Array, ctx: Array, prior: Optional[Array]) -> LayerContext:
+    """The y-independent projections (edges (A, A, d), ctx (N, d), prior (A, K, d))."""
+    pk = pv = None
+    if self.use_prior:
+      pk, pv = self.prior_k(prior), self.prior_v(prior)
+    return LayerContext(edge_k=self.self_ek(edges), edge_v=self.self_ev(edges),
+                        ctx_k=self.ctx_k(ctx), ctx_v=self.ctx_v(ctx), prior_k=pk, prior_v=pv)
+
+  def __call__(self, h: Array, c: LayerContext, masks: DenoiserContext, deterministic: bool) -> Array:
+    drop = lambda x: self.drop(x, deterministic=deterministic)
     # 1. Agents attend to agents, keys/values shifted by the relative pose edge.
-    x = LayerNorm(name="ln_self")(h)
-    q = Dense(d, name="self_q")(x)
-    k = Dense(d, name="self_k")(x)[None] + Dense(d, name="self_ek")(edges)   # (A, A, d)
-    v = Dense(d, name="self_v")(x)[None] + Dense(d, name="self_ev")(edges)
-    h = h + drop(Dense(d, name="self_o")(_attend(q, k, v, agent_mask, self.num_heads)))
+    x = self.ln_self(h)
+    k = self.self_k(x)[None] + c.edge_k                                  # (A, A, d)
+    v = self.self_v(x)[None] + c.edge_v
+    h = h + drop(self.self_o(_attend(self.self_q(x), k, v, masks.agent_mask, self.num_heads)))
     # 2. Agents attend to the scene context.
-    x = LayerNorm(name="ln_ctx")(h)
-    q = Dense(d, name="ctx_q")(x)
-    k, v = Dense(d, name="ctx_k")(ctx), Dense(d, name="ctx_v")(ctx)
-    mask = jnp.broadcast_to(ctx_mask[None], (h.shape[0], ctx.shape[0]))
-    h = h + drop(Dense(d, name="ctx_o")(_attend(q, k, v, mask, self.num_heads)))
+    x = self.ln_ctx(h)
+    mask = jnp.broadcast_to(masks.ctx_mask[None], (h.shape[0], masks.ctx_mask.shape[0]))
+    h = h + drop(self.ctx_o(_attend(self.ctx_q(x), c.ctx_k, c.ctx_v, mask, self.num_heads)))
     # 3. Each agent attends to its own K proposals.
     if self.use_prior:
-      x = LayerNorm(name="ln_prior")(h)
-      q = Dense(d, name="prior_q")(x)
-      k, v = Dense(d, name="prior_k")(prior), Dense(d, name="prior_v")(prior)   # (A, K, d)
-      h = h + drop(Dense(d, name="prior_o")(_attend(q, k, v, prior_mask, self.num_heads)))
+      x = self.ln_prior(h)
+      h = h + drop(self.prior_o(_attend(self.prior_q(x), c.prior_k, c.prior_v, masks.prior_mask,
+                                        self.num_heads)))
     # 4. MLP.
-    x = LayerNorm(name="ln_mlp")(h)
-    x = Dense(d, name="mlp_out")(nn.gelu(Dense(2 * d, name="mlp_in")(x)))
+    x = self.mlp_out(nn.gelu(self.mlp_in(self.ln_mlp(h))))
     return h + drop(x)
 
 
 class Denoiser(nn.Module):
-  """(y_s (A, d_y), s (), DenoiserInputs of one scene) -> scaled noise (A, d_y)."""
+  """(y_s (A, d_y), s (), DenoiserInputs of one scene) -> scaled noise (A, d_y).
+
+  `context(inputs)` computes the y-independent part once (a DenoiserContext);
+  `denoise(y, s, context)` is one evaluation. Submodule names are those of
+  the first (compact) version, so every shipped checkpoint loads.
+  """
   config: DenoiserConfig
   latent_dim: int
 
-  @nn.compact
-  def __call__(self, y: Array, s: Array, inputs: DenoiserInputs, deterministic: bool = True) -> Array:
+  def setup(self):
     cfg = self.config
     d = cfg.d_model
     dtype = jnp.bfloat16 if cfg.compute_dtype == "bfloat16" else jnp.float32
-    Dense = functools.partial(nn.Dense, dtype=dtype)
-    av = inputs.agent_valid
-    scale = cfg.latent_scale
-    temb = Dense(d)(nn.gelu(Dense(d)(step_embedding(s, d))))
-    h = (Dense(d, name="in_y")(y / scale) + Dense(d, name="in_ctx")(inputs.agent_tokens)
-         + temb[None])
+    Dense = functools.partial(nn.Dense, d, dtype=dtype)
+    # Names as the compact version auto-assigned them (outer Dense first).
+    self.Dense_0, self.Dense_1 = Dense(), Dense()                        # step embedding MLP
+    self.in_y, self.in_ctx = Dense(), Dense()
     if cfg.lane_inputs:   # zero-initialised: a model trained without them is unchanged at first
-      h = h + Dense(d, kernel_init=nn.initializers.zeros, name="in_lane")(inputs.agent_lane)
+      self.in_lane = Dense(kernel_init=nn.initializers.zeros)
+    self.Dense_2, self.Dense_3 = Dense(), Dense()                        # relative pose edge MLP
+    self.ctx_proj = Dense()
+    if cfg.use_prior:
+      self.prior_in = Dense()
+    self.layers = [DenoiserLayer(d, cfg.num_heads, cfg.dropout, cfg.use_prior, dtype, name=f"layer_{i}")
+                   for i in range(cfg.num_layers)]
+    self.ln_out = nn.LayerNorm()
+    self.out = nn.Dense(self.latent_dim, kernel_init=nn.initializers.zeros, dtype=dtype)
+
+  def context(self, inputs: DenoiserInputs) -> DenoiserContext:
+    cfg = self.config
+    av = inputs.agent_valid
+    base = self.in_ctx(inputs.agent_tokens)
+    if cfg.lane_inputs:
+      base = base + self.in_lane(inputs.agent_lane)
     centre = jnp.where(av[:, None], inputs.agent_center, 0.0)
     direction = jnp.where(av[:, None], inputs.agent_dir, jnp.array([1.0, 0.0]))
     rpe = relative_pose(centre, direction, None, cfg.radius)            # (A, A, 5)
-    edges = Dense(d)(nn.gelu(Dense(d)(rpe)))                        # (A, A, d)
-    agent_mask = jnp.broadcast_to(av[None], (av.shape[0], av.shape[0]))
-    ctx = Dense(d, name="ctx_proj")(inputs.context_tokens)
+    edges = self.Dense_2(nn.gelu(self.Dense_3(rpe)))                    # (A, A, d)
+    ctx = self.ctx_proj(inputs.context_tokens)
     prior = prior_mask = None
     if cfg.use_prior:
       logp = jnp.log(jnp.maximum(inputs.prior_probs, 1e-6))[..., None]
-      prior = Dense(d, name="prior_in")(
-          jnp.concatenate([inputs.prior_latents / scale, logp], -1))     # (A, K, d)
+      prior = self.prior_in(jnp.concatenate([inputs.prior_latents / cfg.latent_scale, logp], -1))
       prior_mask = jnp.broadcast_to(av[:, None], inputs.prior_probs.shape)
-    for i in range(cfg.num_layers):
-      h = DenoiserLayer(d, cfg.num_heads, cfg.dropout, cfg.use_prior, dtype, name=f"layer_{i}")(
-          h, edges, agent_mask, ctx, inputs.context_valid, prior, prior_mask, deterministic)
-    out = Dense(self.latent_dim, kernel_init=nn.initializers.zeros, name="out")(
-        nn.LayerNorm(name="ln_out")(h)).astype(jnp.float32) * scale
-    return jnp.where(av[:, None], out, 0.0)
+    return DenoiserContext(
+        base=base, agent_mask=jnp.broadcast_to(av[None], (av.shape[0], av.shape[0])),
+        ctx_mask=inputs.context_valid, prior_mask=prior_mask, agent_valid=av,
+        layers=tuple(layer.context(edges, ctx, prior) for layer in self.layers))
+
+  def denoise(self, y: Array, s: Array, c: DenoiserContext, deterministic: bool = True) -> Array:
+    scale = self.config.latent_scale
+    temb = self.Dense_0(nn.gelu(self.Dense_1(step_embedding(s, self.config.d_model))))
+    h = self.in_y(y / scale) + c.base + temb[None]
+    for layer, lc in zip(self.layers, c.layers):
+      h = layer(h, lc, c, deterministic)
+    out = self.out(self.ln_out(h)).astype(jnp.float32) * scale
+    return jnp.where(c.agent_valid[:, None], out, 0.0)
+
+  def __call__(self, y: Array, s: Array, inputs: DenoiserInputs, deterministic: bool = True) -> Array:
+    return self.denoise(y, s, self.context(inputs), deterministic)
 
 
 def init(rng: Array, y: Array, s: Array, inputs: DenoiserInputs, config: DenoiserConfig) -> Any:
@@ -178,6 +242,27 @@ def with_new_inputs(params: Any, config: DenoiserConfig) -> Any:
   if config.lane_inputs and "in_lane" not in inner:
     inner = {**inner, "in_lane": lane_context.zero_projection(config.d_model)}
   return {**params, "params": inner}
+
+
+def context(params: Any, inputs: DenoiserInputs, config: DenoiserConfig, latent_dim: int) -> DenoiserContext:
+  """The y-independent part of the denoiser for a batch of scenes (leading dim
+  B of inputs): compute it once per chain, outside the loop over steps."""
+  model = Denoiser(config, latent_dim)
+  return jax.vmap(lambda ii: model.apply(params, ii, method=Denoiser.context))(inputs)
+
+
+def apply_with_context(params: Any, y: Array, s: Array, ctx: DenoiserContext,
+                       config: DenoiserConfig) -> Array:
+  """`apply` (deterministic) from a precomputed context: y (B, A, d_y), s () or
+  (B,); ctx batched over B, or over 1 to share one scene's context among B
+  samples of it."""
+  model = Denoiser(config, y.shape[-1])
+  s = jnp.broadcast_to(jnp.asarray(s), y.shape[:1])
+  one = lambda yy, ss, cc: model.apply(params, yy, ss, cc, method=Denoiser.denoise)
+  if ctx.agent_valid.shape[0] == 1 and y.shape[0] > 1:
+    shared = jax.tree_util.tree_map(lambda a: a[0], ctx)
+    return jax.vmap(lambda yy, ss: one(yy, ss, shared))(y, s)
+  return jax.vmap(one)(y, s, ctx)
 
 
 def apply(params: Any, y: Array, s: Array, inputs: DenoiserInputs, config: DenoiserConfig,

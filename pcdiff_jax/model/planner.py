@@ -41,7 +41,9 @@ class Models:
 class Conditioning:
   """Per-scene inputs of the sampler (batch dims `...`).
 
-  inputs: DenoiserInputs; mu, sigma: (..., A, d) prior centre and scale
+  inputs: DenoiserInputs (batch B, or 1: one scene's inputs shared by B
+  samples of it, the denoiser's context then computed once); mu, sigma:
+  (..., A, d) prior centre and scale
   (0 and 1 without the prior); speed: (..., A) signed speed at t (the initial
   state of every decoded rollout is [0, 0, 0, speed] in the agent frame);
   proposals: (..., A, K, d) proposal latents; probs: (..., A, K).
@@ -105,6 +107,14 @@ def schedule_of(cfg: Config) -> diffusion.Schedule:
   return diffusion.linear_schedule(d.num_steps, d.beta_min, d.beta_max)
 
 
+def _denoiser_fn(denoiser_params: Any, cond: Conditioning, d):
+  """denoise(y, s) for one chain: the denoiser's y-independent part (edge,
+  context and proposal projections, most of its FLOPs) is computed here once,
+  not at every step; cond.inputs with a batch of 1 are shared by all samples."""
+  ctx = denoiser_lib.context(denoiser_params, cond.inputs, d.denoiser, d.latent_dim)
+  return lambda y, s: denoiser_lib.apply_with_context(denoiser_params, y, s, ctx, d.denoiser)
+
+
 def sample(denoiser_params: Any, cond: Conditioning, cfg: Config, rng: Array,
            num_steps: Optional[int] = None, eta: Optional[float] = None,
            prior_init: bool = True, guide=None, guide_steps=None,
@@ -124,8 +134,7 @@ def sample(denoiser_params: Any, cond: Conditioning, cfg: Config, rng: Array,
   mu, sigma = (cond.mu, cond.sigma) if prior_init else diffusion.standard_prior(cond.mu.shape)
   mu = mu if centre is None else centre
 
-  def denoise(y, s):
-    return denoiser_lib.apply(denoiser_params, y, s, cond.inputs, d.denoiser)
+  denoise = _denoiser_fn(denoiser_params, cond, d)
   return diffusion.ddim_sample(denoise, mu, sigma, schedule_of(cfg), rng, num_steps, eta,
                                guide=guide, guide_steps=guide_steps, init_noise=init_noise,
                                start_step=start_step)
@@ -145,8 +154,7 @@ def sample_cold_or_warm(denoiser_params: Any, cond: Conditioning, cfg: Config, r
   mu, sigma = (cond.mu, cond.sigma) if prior_init else diffusion.standard_prior(cond.mu.shape)
   mu = jnp.where(cold, mu, centre)
 
-  def denoise(y, s):
-    return denoiser_lib.apply(denoiser_params, y, s, cond.inputs, d.denoiser)
+  denoise = _denoiser_fn(denoiser_params, cond, d)
   return diffusion.ddim_sample_either(denoise, mu, sigma, schedule_of(cfg), rng, cold, num_steps,
                                       warm_steps, warm_start, eta, guide=guide,
                                       first_guide_steps=cold_guide_steps,
