@@ -25,8 +25,9 @@ agent count (8-128), DDIM steps and scenarios per call (vmap); and the
 jitted step. These rows plan with one sample (`select_samples=1`); the
 default sample selection (S = 4) gets its own rows: a cold replanning
 (`replan_select4`) and the 80-step closed loop with every default
-(`fused_default_ms_per_step`, and the same with one sample). Compile time is
-excluded and reported separately.
+(`fused_default_ms_per_step`; without selection's map term and with one sample
+too), the actor's state made once per scenario outside the timed loop (its road
+field: `default_actor_init_ms`). Compile time is excluded and reported separately.
 
 `devices`: data-parallel training steps/s (the stage-1 step, the preset's
 global batch split over N devices) and scenario-parallel closed-loop scenes/s
@@ -39,6 +40,7 @@ they are the real scaling.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import tempfile
@@ -181,8 +183,10 @@ def bench_replan_parts(state, cfg, ddim_steps: int, repeats: int) -> dict:
          "decode": _compiled_ms(decode, (models, feats, cond, y0), repeats),
          "replan": _compiled_ms(lambda m, s, r: policy.plan_actions(m, s, cfg, pcfg, r),
                                 (models, state, rng), repeats),
+         # The default's road field (its selection's map term) is built once per scenario: outside.
          f"replan_select{select.select_samples}": _compiled_ms(
-             lambda m, s, r: policy.plan_actions(m, s, cfg, select, r), (models, state, rng), repeats)}
+             lambda m, s, r, road: policy.plan_actions(m, s, cfg, select, r, road=road),
+             (models, state, rng, jax.jit(lambda s: policy.road_for(s, select))(state)), repeats)}
   return row
 
 
@@ -236,18 +240,24 @@ def bench_fused_vs_loop(state, cfg, num_steps: int, repeats: int) -> dict:
          "fused_ms_per_step": fused_t["ms"] / num_steps, "fused_compile_s": fused_t["compile_s"],
          "loop_ms_per_step": 1000 * float(np.median(loop_times)) / num_steps,
          "fused_warm_start_ms_per_step": warm_t["ms"] / num_steps}
-  # The default policy (warm start, temporal ensemble, sample selection) and it without selection.
-  for name, samples in (("fused_default_ms_per_step", policy.PolicyConfig.select_samples),
-                        ("fused_default_select1_ms_per_step", 1)):
-    act = policy.actor(cfg, policy.PolicyConfig(select_samples=samples))
-    row[name] = _compiled_ms(lambda s, r, m: env.rollout(s, act, num_steps, r, params=m).final_state,
-                             (start, rng, models), repeats)["ms"] / num_steps
+  # The default policy (warm start, temporal ensemble, sample selection with its map term), it
+  # without the map term and without selection. The actor's state (the road field of the map
+  # term) is made once per scenario, outside: its cost is its own row.
+  default = policy.PolicyConfig()
+  for name, pcfg in (("fused_default_ms_per_step", default),
+                     ("fused_default_nomap_ms_per_step", dataclasses.replace(default, select_map_weight=0.0)),
+                     ("fused_default_select1_ms_per_step", dataclasses.replace(default, select_samples=1))):
+    act = policy.actor(cfg, pcfg)
+    init = jax.jit(act.init)(rng, start)
+    row[name] = _compiled_ms(
+        lambda s, r, m, a0, act=act: env.rollout(s, act, num_steps, r, params=m, actor_state=a0).final_state,
+        (start, rng, models, init), repeats)["ms"] / num_steps
+  row["default_actor_init_ms"] = _compiled_ms(policy.actor(cfg, default).init, (rng, start), repeats)["ms"]
   return row
 
 
 def bench_policy(path: str, preset: str, agent_counts: list[int], ddim_steps: list[int],
                  batch_sizes: list[int], repeats: int) -> dict:
-  import dataclasses
   from pcdiff_jax.config import get_config
   from pcdiff_jax.data import womd
   from pcdiff_jax.sim import env
@@ -269,7 +279,6 @@ def bench_guidance(path: str, preset: str, repeats: int) -> dict:
   """One replanning of one scene (65 agents, 5 DDIM steps) without guidance,
   with objective and with adversarial guidance (default GuidanceConfig), the
   road field built beforehand as the actor does at init; and that build."""
-  import dataclasses
   from pcdiff_jax import policy
   from pcdiff_jax.config import get_config
   from pcdiff_jax.data import womd
@@ -297,7 +306,6 @@ def bench_lane_inputs(path: str, preset: str, repeats: int) -> dict:
   """What the denoiser's lane-relative inputs (`DenoiserConfig.lane_inputs`,
   the shipped model's since v6) cost: one cold replanning of one scene (65
   agents, 5 DDIM steps) without and with them, and their computation alone."""
-  import dataclasses
   from pcdiff_jax import policy
   from pcdiff_jax.config import get_config
   from pcdiff_jax.data import womd

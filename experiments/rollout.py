@@ -56,6 +56,9 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--select-samples", type=int, default=evaluation.EvalConfig.select_samples,
                  help="pcdiff: draw this many joint plans per replan and keep, per agent, the one whose "
                       "plan overlaps the others' least over 3 s (1 = off; S times the denoiser's work)")
+  p.add_argument("--select-map-weight", type=float, default=evaluation.EvalConfig.select_map_weight,
+                 help="pcdiff with --select-samples > 1: also prefer the sample that stays on the road, "
+                      "with this weight on its J_map (m^2; 0 = off; builds a road field per scenario)")
   p.add_argument("--simpl-ar-sample", action="store_true",
                  help="simpl-ar: draw each agent's mode by its probability (default: the top mode)")
   p.add_argument("--num-rollouts", type=int, default=1,
@@ -99,6 +102,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                "seeds", "select_samples"):
     if getattr(args, name) < 1:
       p.error(f"--{name.replace('_', '-')} must be >= 1")
+  if args.select_map_weight < 0:
+    p.error("--select-map-weight must be >= 0")
   if not 0 <= args.warm_step <= 99:
     p.error("--warm-step must be in [0, 99]")
   if not all(0.0 <= m < 1.0 for m in args.temporal_ensemble):
@@ -137,6 +142,7 @@ def main(argv=None) -> int:
                               warm_step=args.warm_step, warm_ddim_steps=args.warm_ddim_steps,
                               temporal_ensemble=tuple(args.temporal_ensemble),
                               simpl_ar_sample=args.simpl_ar_sample, select_samples=args.select_samples,
+                              select_map_weight=args.select_map_weight,
                               metrics=MetricsConfig(max_reactive_agents=args.max_agents),
                               guidance=GuidanceConfig(
                                   mode=args.guidance, w_map=args.w_map, w_coll=args.w_coll,

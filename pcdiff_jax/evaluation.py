@@ -56,7 +56,8 @@ class EvalConfig:
   temporal_ensemble: their executed plan averaged over replans
   (`policy.PolicyConfig`). select_samples: the diffusion policies draw that
   many joint plans per replan and keep, per agent, the one that collides
-  least (`PolicyConfig.select_samples`). simpl_ar_sample: SIMPL-AR draws its modes by their
+  least (`PolicyConfig.select_samples`), select_map_weight: and that leaves
+  the road least (`PolicyConfig.select_map_weight`). simpl_ar_sample: SIMPL-AR draws its modes by their
   probabilities instead of taking the top mode.
 
   The learned methods model up to `metrics.max_reactive_agents` + 1 agents
@@ -90,6 +91,7 @@ class EvalConfig:
   temporal_ensemble: tuple[float, float] = (0.3, 0.0)
   simpl_ar_sample: bool = False
   select_samples: int = 4
+  select_map_weight: float = 30.0
 
   @property
   def adversarial_scores(self) -> bool:
@@ -137,7 +139,8 @@ def _method_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
                              prior_centre=cfg.prior_centre, warm_start=cfg.warm_start,
                              warm_step=cfg.warm_step, warm_ddim_steps=cfg.warm_ddim_steps,
                              temporal_ensemble=cfg.temporal_ensemble,
-                             select_samples=cfg.select_samples)
+                             select_samples=cfg.select_samples,
+                             select_map_weight=cfg.select_map_weight)
   return policy.actor(with_agent_cap(model_cfg, cfg.metrics), pcfg), models
 
 

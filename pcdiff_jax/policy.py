@@ -108,6 +108,16 @@ class PolicyConfig:
   the first 50 val scenes at 10 Hz, S = 1 / 2 / 4 / 8 gave 10.7 / 6.0 / 4.3 /
   4.3% collisions and 7.1 / 6.6 / 6.1 / 6.2% off-road at the same realism and
   minADE.
+
+  select_map_weight: with S > 1, each sample also costs this weight times its
+  J_map over the lookahead (`guidance.map_cost`: mean squared excursion of the
+  box corners past the road edge, m^2, on the same road field guidance uses),
+  so an agent prefers a sample that stays on the road as it prefers one that
+  does not collide. The field is built once per scenario (`road_for`, at the
+  actor's init: about 1 s on 2 CPU cores); 0 turns the term off. Default 30
+  since session 9 (docs/RESULTS.md, "Selection with a map term"): on the
+  first 50 val scenes, weight 0 / 10 / 30 / 100 gave 6.1 / 2.9 / 2.6 / 2.7%
+  off-road at 4.3 / 5.1 / 5.2 / 5.2% collisions, same realism.
   """
   ddim_steps: int = 5
   eta: float = 0.0
@@ -124,6 +134,7 @@ class PolicyConfig:
   temporal_ensemble: tuple[float, float] = (0.3, 0.0)
   select_samples: int = 4
   select_lookahead: int = 30
+  select_map_weight: float = 30.0
 
 
 @struct.dataclass
@@ -213,7 +224,7 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
       # Gaussian draw per agent, still a function of the rollout's noise (not of rng).
       init_noise = jnp.concatenate([jnp.roll(init_noise, k, axis=1) for k in range(policy.select_samples)])
   if road is None:
-    road = guidance_lib.road_of(state, policy.guidance)
+    road = road_for(state, policy)
   guide = _guide(models, state, batched, cond, cfg, policy.guidance, jnp.asarray(adversary, jnp.int32), road)
   if warm is None:
     steps = policy.guidance.guide_steps(policy.ddim_steps) if guide is not None else None
@@ -234,7 +245,12 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
   if policy.select_samples > 1:   # the SDC (slot 0, on its log) and an adversarial pursuer keep sample 0
     pursuer = (feats.agent_index == adversary) & (adversary >= 0)
     keep = (jnp.arange(feats.agent_valid.shape[0]) == 0) | pursuer
-    y0 = select_sample(y0, models, cond, batched, cfg, policy.select_lookahead, keep)
+    road_here = None
+    if policy.select_map_weight > 0:
+      road_here = road.in_frame(feats.scene_xy, feats.scene_yaw)
+      road_here = jax.tree_util.tree_map(lambda a: a[None], road_here)   # a batch of 1 for map_cost
+    y0 = select_sample(y0, models, cond, batched, cfg, policy.select_lookahead, keep,
+                       road_here, policy.select_map_weight, policy.guidance)
   actions = dynamics.clip_action(latent.decode(y0[0], models.stats), cfg.kinematics)  # (A, T, 2)
   if policy.execute == "track":   # the world-frame path is only needed to track it
     states = dynamics.rollout(latent.initial_states(cond.speed[0]), actions, cfg.kinematics.dt)
@@ -248,11 +264,14 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
 
 
 def select_sample(y0: Array, models: Models, cond: planner.Conditioning, batched, cfg: Config,
-                  lookahead: int, keep: Array) -> Array:
+                  lookahead: int, keep: Array, road: Optional[RoadField] = None,
+                  map_weight: float = 0.0,
+                  guidance: guidance_lib.GuidanceConfig = guidance_lib.GuidanceConfig()) -> Array:
   """(1, A, d): per agent, one of the S joint samples y0 (S, A, d) of one scene
   (cond, batched: that scene repeated S times) such that the chosen plans
-  overlap least over their first `lookahead` steps (`PolicyConfig.select_samples`);
-  agents where keep (A,) keep sample 0."""
+  overlap least over their first `lookahead` steps (`PolicyConfig.select_samples`),
+  plus map_weight x each sample's J_map on `road` (the scene's field in the
+  scene frame) when map_weight > 0; agents where keep (A,) keep sample 0."""
   states = planner.decode_states(models.stats, cond, y0, cfg)[..., :lookahead, :]   # (S, A, L, 4)
   xy, yaw = planner.to_scene(states, batched)
   feats = jax.tree_util.tree_map(lambda a: a[0], batched)
@@ -260,9 +279,27 @@ def select_sample(y0: Array, models: Models, cond: planner.Conditioning, batched
   coll = joint_selection.collision_counts(jnp.moveaxis(xy, 0, 1), jnp.moveaxis(yaw, 0, 1),
                                           length, width, feats.agent_valid)   # (A, S, A, S)
   num = feats.agent_valid.shape[0]
+  unary = jnp.zeros((num, y0.shape[0]))
+  if map_weight > 0:
+    agents = guidance_lib.Agents(length=length, width=width, valid=feats.agent_valid,
+                                 vehicle=feats.agent_types == ObjectType.VEHICLE,
+                                 pursuer=jnp.int32(-1), evader=jnp.int32(-1))
+    unary = map_weight * guidance_lib.map_cost(xy, yaw, agents, road, guidance).T    # (A, S)
+  # ICM starts from each agent's best unary sample (sample 0 on ties) and never moves a kept
+  # agent: a zero unary keeps it on sample 0.
+  unary = jnp.where(keep[:, None], 0.0, unary)
   choice = joint_selection.iterated_conditional_modes(
-      jnp.zeros((num, y0.shape[0])), coll, feats.agent_valid & ~keep, 1.0, sweeps=2, order=jnp.arange(num))
+      unary, coll, feats.agent_valid & ~keep, 1.0, sweeps=2, order=jnp.arange(num))
   return jnp.take_along_axis(y0, choice[None, :, None], axis=0)
+
+
+def road_for(state: SimulatorState, policy: PolicyConfig) -> RoadField:
+  """The scene's road field as the policy needs it: guidance's, or the one
+  sample selection's map term reads (the same field), else a placeholder."""
+  g = policy.guidance
+  if g.mode == "none" and policy.select_samples > 1 and policy.select_map_weight > 0:
+    g = dataclasses.replace(g, mode="objective")   # road_of builds the field for any guided mode
+  return guidance_lib.road_of(state, g)
 
 
 EXECUTE = ("actions", "track")
@@ -330,7 +367,7 @@ def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
                      age=jnp.asarray(policy.replan_every, jnp.int32),   # plan at the first call
                      adversary=pursuer_of(state, cfg, policy.guidance),
                      noise=jax.random.normal(jax.random.fold_in(rng, 1), (num_objects, cfg.diffusion.latent_dim)),
-                     road=guidance_lib.road_of(state, policy.guidance))
+                     road=road_for(state, policy))
 
   def replan(models, state, ps: PlanState, rng):
     noise = ps.noise if policy.consistent_noise else None
@@ -393,6 +430,8 @@ def validate(cfg: Config, policy: PolicyConfig) -> None:
     raise ValueError(f"select_samples must be in [1, 64], got {policy.select_samples}")
   if not 1 <= policy.select_lookahead <= cfg.encoder.horizon:
     raise ValueError(f"select_lookahead must be in [1, {cfg.encoder.horizon}], got {policy.select_lookahead}")
+  if policy.select_map_weight < 0:
+    raise ValueError(f"select_map_weight must be >= 0, got {policy.select_map_weight}")
   policy.guidance.validate()
 
 
@@ -418,9 +457,10 @@ def step(state: SimulatorState, models: Models, cfg: Config, rng: Array,
   at this step. Those agents are modelled first (after the SDC), so a caller
   that passes the same mask at every step keeps the same agents; past the
   model's cap (`cfg.features.max_agents`, the SDC included) the farthest keep
-  their speed and heading (zero action). Under guidance, pass
-  road=`guidance.road_of(state, policy.guidance)` made once per scenario to
-  avoid rebuilding the road field at every call. A stateless call always
+  their speed and heading (zero action). Under guidance and with sample
+  selection's map term (the default), pass road=`road_for(state, policy)`
+  made once per scenario to avoid rebuilding the road field (about 1 s) at
+  every call. A stateless call always
   plans cold (no warm start)."""
   controlled = controlled_or_default(state, cfg, controlled)
   plan, planned, path = plan_actions(models, state, cfg, policy, rng,

@@ -272,6 +272,28 @@ def test_sample_selection_keeps_the_least_colliding_joint_plan(models):
   free = joint_selection.iterated_conditional_modes(jnp.zeros((4, 3)), jnp.zeros((4, 3, 4, 3)),
                                                     jnp.ones(4, bool), 1.0, 2, jnp.arange(4))
   assert free.tolist() == [0, 0, 0, 0]
+  # With a map term (select_map_weight) that dwarfs the overlap counts, each agent keeps its
+  # sample that leaves the road least, on the road field the policy builds for it.
+  from pcdiff_jax.model import guidance as guidance_lib
+  from pcdiff_jax.sim.datatypes import ObjectType
+  g = guidance_lib.GuidanceConfig()
+  road = policy.road_for(state, policy.PolicyConfig(select_samples=s, select_map_weight=1.0))
+  assert road.values.shape[-1] == g.field_size                    # a real field, not the placeholder
+  road = jax.tree_util.tree_map(lambda a: a[None], road.in_frame(feats.scene_xy, feats.scene_yaw))
+  states = planner.decode_states(models.stats, cond, y0, CFG)[..., :30, :]
+  xy, yaw = planner.to_scene(states, batched)
+  length, width = planner.agent_size(feats)
+  agents = guidance_lib.Agents(length=length, width=width, valid=feats.agent_valid,
+                               vehicle=feats.agent_types == ObjectType.VEHICLE,
+                               pursuer=jnp.int32(-1), evader=jnp.int32(-1))
+  cost = np.asarray(guidance_lib.map_cost(xy, yaw, agents, road, g)).T        # (A, S)
+  chosen = policy.select_sample(y0, models, cond, batched, CFG, 30, keep, road, 1e6, g)
+  choice = np.asarray(jnp.argmax(jnp.all(chosen == y0, -1), 0))
+  assert choice[0] == 0              # the SDC keeps sample 0 (here its worst on the map)
+  ranked = np.sort(cost, -1)
+  clear = np.asarray(feats.agent_valid & ~keep) & (ranked[:, 1] - ranked[:, 0] > 0.1)
+  assert clear.sum() >= 1
+  np.testing.assert_array_equal(choice[clear], np.argmin(cost, -1)[clear])
   # In closed loop (with consistent noise: each sample's its own draw): one program, finite actions.
   act = policy.actor(CFG, policy.PolicyConfig(ddim_steps=2, select_samples=s, consistent_noise=True))
   select = jax.jit(act.select_action)
