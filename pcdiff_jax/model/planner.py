@@ -109,8 +109,9 @@ def schedule_of(cfg: Config) -> diffusion.Schedule:
 
 def _denoiser_fn(denoiser_params: Any, cond: Conditioning, d):
   """denoise(y, s) for one chain: the denoiser's y-independent part (edge,
-  context and proposal projections, most of its FLOPs) is computed here once,
-  not at every step; cond.inputs with a batch of 1 are shared by all samples."""
+  context and proposal projections) is computed here once. XLA already hoisted
+  it out of the step loop; what this saves is its repetition per sample, as
+  cond.inputs with a batch of 1 are shared by all the samples of a scene."""
   ctx = denoiser_lib.context(denoiser_params, cond.inputs, d.denoiser, d.latent_dim)
   return lambda y, s: denoiser_lib.apply_with_context(denoiser_params, y, s, ctx, d.denoiser)
 
