@@ -134,3 +134,24 @@ def test_train_cli_rejects_bad_input(tmp_path, capsys):
                  "--workdir", str(tmp_path / "w"), "--no-progress"]) == 2
   with pytest.raises(SystemExit):
     _train(["--stage", "nope", "--data", "x", "--workdir", "w"])
+
+
+def test_resume_accepts_a_run_saved_before_a_new_config_field(tmp_path):
+  """A checkpoint whose config lacks a field added since (saved before the option
+  existed) resumes when the field is at its default, and is refused when not."""
+  import dataclasses
+  import optax
+  from pcdiff_jax import config as config_lib
+  from pcdiff_jax.training import trainer
+  cfg = get_config("tiny")
+  state = trainer.create_state({"w": jnp.ones(3)}, optax.sgd(0.1), seed=0)
+  saved = config_lib.to_dict(cfg)
+  del saved["encoder"]["lane_inputs"]                      # as written by an older version
+  ckpt = trainer.Checkpointer(str(tmp_path))
+  ckpt.save(state.replace(step=jnp.asarray(3, jnp.int32)), saved)
+  restored = ckpt.restore_or_keep(state, config_lib.to_dict(cfg))
+  assert int(restored.step) == 3
+  changed = dataclasses.replace(cfg, encoder=dataclasses.replace(cfg.encoder, lane_inputs=True))
+  with pytest.raises(trainer.CheckpointMismatch, match="encoder.lane_inputs"):
+    ckpt.restore_or_keep(state, config_lib.to_dict(changed))
+  ckpt.close()

@@ -32,6 +32,7 @@ from flax import struct
 from jax.sharding import Mesh
 
 from pcdiff_jax import distributed
+from pcdiff_jax import config as config_lib
 from pcdiff_jax.config import TrainConfig
 from pcdiff_jax.sim.datatypes import Array
 
@@ -128,6 +129,15 @@ def _diff(a: Any, b: Any, prefix: str = "") -> list[str]:
   return [] if a == b else [f"{prefix[:-1]}: saved {a!r}, now {b!r}"]
 
 
+def _with_defaults(saved: dict) -> dict:
+  """A saved Config dict with the fields added since it was saved at their
+  defaults (so a run saved before a new option resumes when it is off)."""
+  try:
+    return config_lib.to_dict(config_lib.from_dict(saved))
+  except (ValueError, TypeError):   # not a whole Config (or a field since removed): compare as saved
+    return saved
+
+
 class _DropReadOnlyNotice(logging.Filter):
   """orbax warns "Given directory is read only" each time a model is loaded
   read-only, which is what loading is: that one message only, not a warning."""
@@ -208,7 +218,7 @@ class Checkpointer:
     """
     if self.latest_step() is None:
       return state
-    saved = self.read_config()
+    saved = _with_defaults(self.read_config())
     if compare is not None:
       saved = {k: saved.get(k) for k in compare}
       config = {k: config.get(k) for k in compare}
