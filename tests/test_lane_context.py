@@ -80,7 +80,7 @@ def test_an_encoder_trained_without_lane_inputs_loads_with_them_unchanged(tiny_m
   before, after = run(tiny_models.encoder, feats, CFG.encoder), run(params, feats, cfg)
   np.testing.assert_allclose(np.asarray(after.trajectories), np.asarray(before.trajectories), atol=1e-5)
   np.testing.assert_allclose(np.asarray(after.probs), np.asarray(before.probs), atol=1e-6)
-  grad = jax.grad(lambda p: jnp.sum(encoder.apply(p, feats, cfg).trajectories ** 2))(params)["params"]
+  grad = jax.jit(jax.grad(lambda p: jnp.sum(encoder.apply(p, feats, cfg).trajectories ** 2)))(params)["params"]
   assert float(jnp.abs(grad["head_lane"]["kernel"]).sum()) > 0
 
 

@@ -18,6 +18,8 @@ from pcdiff_jax.training import data as data_lib
 from pcdiff_jax.training import diffusion_stage
 
 CFG = get_config("tiny")
+# One sample per plan where a test is about something else: sample selection (the default's 4
+# samples and its road field) has its own tests, and the closed-loop test runs the defaults.
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +53,7 @@ def test_closed_loop_is_one_program_without_recompiles(models):
 
 def test_replanning_interval_and_single_step(models):
   state = env.reset(make_scene(num_steps=91))
-  act = policy.actor(CFG, policy.PolicyConfig(ddim_steps=1, replan_every=3))
+  act = policy.actor(CFG, policy.PolicyConfig(select_samples=1, ddim_steps=1, replan_every=3))
   ps = act.init(jax.random.key(0), state)
   select = jax.jit(act.select_action)
   ages, plans = [], []
@@ -75,7 +77,7 @@ def test_consistent_noise_makes_the_plan_a_function_of_the_scene(models):
   """With the rollout's noise (consistent_noise), the step's rng does not
   change the plan (eta = 0); without it, it does."""
   state = env.reset(make_scene(num_steps=91))
-  pcfg = policy.PolicyConfig(ddim_steps=1, consistent_noise=True)
+  pcfg = policy.PolicyConfig(select_samples=1, ddim_steps=1, consistent_noise=True)
   ps = policy.actor(CFG, pcfg).init(jax.random.key(0), state)
   plan = jax.jit(lambda r, n: policy.plan_actions(models, state, CFG, pcfg, r, -1, n)[0])
   a, b = plan(jax.random.key(1), ps.noise), plan(jax.random.key(2), ps.noise)
@@ -102,7 +104,7 @@ def test_guided_closed_loop_runs_and_changes_the_plans(models):
   finals, ends = {}, {}
   for mode in ("none", "objective", "adversarial"):
     g = GuidanceConfig(mode=mode, eta=0.5, w_pursue=10.0, field_size=64, max_edge_points=512)
-    actor = policy.actor(CFG, policy.PolicyConfig(ddim_steps=2, guidance=g))
+    actor = policy.actor(CFG, policy.PolicyConfig(select_samples=1, ddim_steps=2, guidance=g))
     ends[mode] = evaluation.make_rollout_fn(actor, cfg)(states, rngs, models)
     finals[mode] = ends[mode].sim_trajectory
     assert bool(jnp.all(jnp.isfinite(finals[mode].x[:, :, 11:14])))
@@ -159,7 +161,7 @@ def test_track_execution_follows_the_planned_path(models):
   bend = ahead + 0.5 * t[None, :, None] ** 2 * left[:, None]                         # drifting left
   moving = valid & (np.linalg.norm(np.asarray(cur.vel_xy[:, 0]), axis=-1) > 1.0)
   assert (np.asarray(policy._track(state, bend, 0, 5, CFG))[moving, 1] > 0).all()
-  act = policy.actor(CFG, policy.PolicyConfig(ddim_steps=1, replan_every=2, execute="track"))
+  act = policy.actor(CFG, policy.PolicyConfig(select_samples=1, ddim_steps=1, replan_every=2, execute="track"))
   ps = act.init(jax.random.key(0), state)
   for k in range(3):
     out = jax.jit(act.select_action)(models, state, ps, jax.random.key(k))
@@ -174,14 +176,14 @@ def test_track_execution_follows_the_planned_path(models):
 def test_prior_centred_on_the_top_mode(models):
   state = env.reset(make_scene(num_steps=91))
   from pcdiff_jax.model import features as features_lib
-  feats = jax.tree_util.tree_map(lambda a: a[None], features_lib.scene_features(state, CFG.features))
-  cond = planner.condition(models.encoder, models.stats, feats, CFG)
-  top = planner.centre_on_top_mode(cond)
+  feats = jax.jit(lambda st: jax.tree_util.tree_map(lambda a: a[None], features_lib.scene_features(st, CFG.features)))(state)
+  cond, top = jax.jit(lambda f: (lambda c: (c, planner.centre_on_top_mode(c)))(
+      planner.condition(models.encoder, models.stats, f, CFG)))(feats)
   best = np.asarray(jnp.argmax(cond.probs, -1))[0]
   props = np.asarray(cond.proposals)[0]
   np.testing.assert_allclose(np.asarray(top.mu)[0], props[np.arange(len(best)), best])
   np.testing.assert_array_equal(np.asarray(top.sigma), np.asarray(cond.sigma))
-  pcfg = policy.PolicyConfig(ddim_steps=1, prior_centre="top1")
+  pcfg = policy.PolicyConfig(select_samples=1, ddim_steps=1, prior_centre="top1")
   plan = jax.jit(lambda r: policy.plan_actions(models, state, CFG, pcfg, r)[0])(jax.random.key(0))
   assert bool(jnp.all(jnp.isfinite(plan)))
   with pytest.raises(ValueError, match="prior_centre"):
@@ -196,7 +198,7 @@ def test_warm_start_advances_the_previous_plan(models):
   np.testing.assert_array_equal(np.asarray(policy.advance_plan(plan, jnp.int32(0))), np.asarray(plan))
   # In closed loop: the first plan is cold, the next ones warm; one program.
   state = env.reset(make_scene(num_steps=91))
-  pcfg = policy.PolicyConfig(ddim_steps=2, warm_start=True, warm_step=0, warm_ddim_steps=1)
+  pcfg = policy.PolicyConfig(select_samples=1, ddim_steps=2, warm_start=True, warm_step=0, warm_ddim_steps=1)
   act = policy.actor(CFG, pcfg)
   ps = act.init(jax.random.key(0), state)
   select = jax.jit(act.select_action)
@@ -208,7 +210,8 @@ def test_warm_start_advances_the_previous_plan(models):
   controlled = np.asarray(first.actor_state.controlled)
   old = np.asarray(policy.advance_plan(first.actor_state.plan, jnp.int32(1)))[controlled]
   new = np.asarray(second.actor_state.plan)[controlled]
-  cold = policy.plan_actions(models, state2, CFG, policy.PolicyConfig(ddim_steps=2), jax.random.key(2))[0]
+  cold = jax.jit(lambda s, r: policy.plan_actions(models, s, CFG, policy.PolicyConfig(select_samples=1, ddim_steps=2), r)[0])(
+      state2, jax.random.key(2))
   assert np.abs(new - old).mean() < np.abs(np.asarray(cold)[controlled] - old).mean()
   with pytest.raises(ValueError, match="warm_ddim_steps"):
     policy.actor(CFG, policy.PolicyConfig(warm_start=True, warm_step=1, warm_ddim_steps=3))
@@ -225,7 +228,7 @@ def test_temporal_ensemble_averages_the_plans_made_for_each_step(models):
   np.testing.assert_array_equal(out[1:], 0.0)                    # no new plan / no previous plan
   # In closed loop: the executed action is the ensemble's, replanning every step.
   state = env.reset(make_scene(num_steps=91))
-  pcfg = policy.PolicyConfig(ddim_steps=2, temporal_ensemble=(0.5, 0.5))
+  pcfg = policy.PolicyConfig(select_samples=1, ddim_steps=2, temporal_ensemble=(0.5, 0.5))
   act = policy.actor(CFG, pcfg)
   select = jax.jit(act.select_action)
   first = select(models, state, act.init(jax.random.key(0), state), jax.random.key(1))
@@ -233,10 +236,10 @@ def test_temporal_ensemble_averages_the_plans_made_for_each_step(models):
   second = select(models, state2, first.actor_state, jax.random.key(2))
   assert select._cache_size() == 1
   controlled = np.asarray(first.actor_state.controlled)
-  fresh = policy.plan_actions(models, state2, CFG, dataclasses.replace(pcfg, temporal_ensemble=(0.0, 0.0)),
-                              jax.random.key(2), controlled=first.actor_state.controlled,
-                              warm=policy.WarmStart(actions=policy.advance_plan(first.actor_state.plan, jnp.int32(1)),
-                                                    has=first.actor_state.plan_valid & first.actor_state.controlled))[0]
+  fresh = jax.jit(lambda s, ps, r: policy.plan_actions(
+      models, s, CFG, dataclasses.replace(pcfg, temporal_ensemble=(0.0, 0.0)), r, controlled=ps.controlled,
+      warm=policy.WarmStart(actions=policy.advance_plan(ps.plan, jnp.int32(1)),
+                            has=ps.plan_valid & ps.controlled))[0])(state2, first.actor_state, jax.random.key(2))
   expect = 0.5 * np.asarray(first.actor_state.plan)[:, 1] + 0.5 * np.asarray(fresh)[:, 0]
   np.testing.assert_allclose(np.asarray(second.action.data)[controlled], expect[controlled], atol=1e-5)
   with pytest.raises(ValueError, match="temporal_ensemble"):
@@ -245,57 +248,59 @@ def test_temporal_ensemble_averages_the_plans_made_for_each_step(models):
 
 def test_sample_selection_keeps_the_least_colliding_joint_plan(models):
   from pcdiff_jax.model import features as features_lib
+  from pcdiff_jax.model import guidance as guidance_lib
   from pcdiff_jax.model import joint_selection
+  from pcdiff_jax.sim.datatypes import ObjectType
   state = env.reset(make_scene(num_steps=91))
-  feats = features_lib.scene_features(state, CFG.features)
+  feats = jax.jit(lambda st: features_lib.scene_features(st, CFG.features))(state)
   s = 3
   batched = jax.tree_util.tree_map(lambda a: jnp.repeat(a[None], s, 0), feats)
-  cond = planner.condition(models.encoder, models.stats, batched, CFG)
+  cond = jax.jit(lambda b: planner.condition(models.encoder, models.stats, b, CFG))(batched)
   y0 = 3.0 * jax.random.normal(jax.random.key(0), cond.mu.shape)          # widely spread plans
+  keep = jnp.arange(feats.agent_valid.shape[0]) == 0
+  # A small road field keeps the test's compiles short; the policy's default is 256 x 256.
+  g = guidance_lib.GuidanceConfig(field_size=64)
 
-  def overlaps(choice):
+  @jax.jit
+  def candidates(road):
+    """Every candidate pair's overlaps (A, S, A, S) and each candidate's J_map (A, S)."""
     states = planner.decode_states(models.stats, cond, y0, CFG)[..., :30, :]
     xy, yaw = planner.to_scene(states, batched)
     length, width = planner.agent_size(feats)
     coll = joint_selection.collision_counts(jnp.moveaxis(xy, 0, 1), jnp.moveaxis(yaw, 0, 1),
                                             length, width, feats.agent_valid)
-    num = len(choice)
-    return float(coll[jnp.arange(num)[:, None], choice[:, None], jnp.arange(num)[None], choice[None]].sum())
+    agents = guidance_lib.Agents(length=length, width=width, valid=feats.agent_valid,
+                                 vehicle=feats.agent_types == ObjectType.VEHICLE,
+                                 pursuer=jnp.int32(-1), evader=jnp.int32(-1))
+    return coll, guidance_lib.map_cost(xy, yaw, agents, road, g).T
 
-  keep = jnp.arange(feats.agent_valid.shape[0]) == 0
-  chosen = policy.select_sample(y0, models, cond, batched, CFG, 30, keep)
+  select = jax.jit(lambda road, weight: policy.select_sample(y0, models, cond, batched, CFG, 30, keep,
+                                                              road, weight, g), static_argnums=1)
+  road = policy.road_for(state, policy.PolicyConfig(select_samples=s, select_map_weight=1.0, guidance=g))
+  assert road.values.shape[-1] == g.field_size                    # a real field, not the placeholder
+  road = jax.tree_util.tree_map(lambda a: a[None], road.in_frame(feats.scene_xy, feats.scene_yaw))
+  coll, cost = (np.asarray(a) for a in candidates(road))
+  overlaps = lambda c: float(coll[np.arange(len(c))[:, None], c[:, None], np.arange(len(c))[None], c[None]].sum())
+
+  chosen = select(road, 0.0)
   assert chosen.shape == (1,) + y0.shape[1:]
-  choice = jnp.argmax(jnp.all(chosen == y0, -1), 0)                      # (A,) the sample each agent kept
+  choice = np.asarray(jnp.argmax(jnp.all(chosen == y0, -1), 0))          # (A,) the sample each agent kept
   assert int(choice[0]) == 0                                              # the SDC keeps sample 0
-  assert overlaps(choice) <= overlaps(jnp.zeros_like(choice))
+  assert overlaps(choice) <= overlaps(np.zeros_like(choice))
   # Equally likely candidates without overlaps: everyone keeps sample 0.
   free = joint_selection.iterated_conditional_modes(jnp.zeros((4, 3)), jnp.zeros((4, 3, 4, 3)),
                                                     jnp.ones(4, bool), 1.0, 2, jnp.arange(4))
   assert free.tolist() == [0, 0, 0, 0]
   # With a map term (select_map_weight) that dwarfs the overlap counts, each agent keeps its
   # sample that leaves the road least, on the road field the policy builds for it.
-  from pcdiff_jax.model import guidance as guidance_lib
-  from pcdiff_jax.sim.datatypes import ObjectType
-  g = guidance_lib.GuidanceConfig()
-  road = policy.road_for(state, policy.PolicyConfig(select_samples=s, select_map_weight=1.0))
-  assert road.values.shape[-1] == g.field_size                    # a real field, not the placeholder
-  road = jax.tree_util.tree_map(lambda a: a[None], road.in_frame(feats.scene_xy, feats.scene_yaw))
-  states = planner.decode_states(models.stats, cond, y0, CFG)[..., :30, :]
-  xy, yaw = planner.to_scene(states, batched)
-  length, width = planner.agent_size(feats)
-  agents = guidance_lib.Agents(length=length, width=width, valid=feats.agent_valid,
-                               vehicle=feats.agent_types == ObjectType.VEHICLE,
-                               pursuer=jnp.int32(-1), evader=jnp.int32(-1))
-  cost = np.asarray(guidance_lib.map_cost(xy, yaw, agents, road, g)).T        # (A, S)
-  chosen = policy.select_sample(y0, models, cond, batched, CFG, 30, keep, road, 1e6, g)
-  choice = np.asarray(jnp.argmax(jnp.all(chosen == y0, -1), 0))
+  choice = np.asarray(jnp.argmax(jnp.all(select(road, 1e6) == y0, -1), 0))
   assert choice[0] == 0              # the SDC keeps sample 0 (here its worst on the map)
   ranked = np.sort(cost, -1)
   clear = np.asarray(feats.agent_valid & ~keep) & (ranked[:, 1] - ranked[:, 0] > 0.1)
   assert clear.sum() >= 1
   np.testing.assert_array_equal(choice[clear], np.argmin(cost, -1)[clear])
   # In closed loop (with consistent noise: each sample's its own draw): one program, finite actions.
-  act = policy.actor(CFG, policy.PolicyConfig(ddim_steps=2, select_samples=s, consistent_noise=True))
+  act = policy.actor(CFG, policy.PolicyConfig(ddim_steps=2, select_samples=s, consistent_noise=True, guidance=g))
   select = jax.jit(act.select_action)
   ps = act.init(jax.random.key(0), state)
   for k in range(2):

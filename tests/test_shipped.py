@@ -56,7 +56,7 @@ def test_shipped_simpl_ar_baseline_has_its_own_lane_aware_encoder(model, real_st
   assert sa_cfg.encoder.lane_inputs and not cfg.encoder.lane_inputs
   assert "in_lane" in params["params"]
   start = env.reset(real_state)
-  feats = features.scene_features(start, sa_cfg.features)
+  feats = jax.jit(lambda st: features.scene_features(st, sa_cfg.features))(start)
   out = jax.jit(encoder.apply, static_argnums=2)(params, feats, sa_cfg.encoder)
   xy, _ = encoder.proposals_to_world(out, feats)                              # (A, K, T, 2)
   top = np.asarray(out.probs).argmax(-1)

@@ -88,7 +88,7 @@ def test_diffusion_loss_finite_with_masked_agents(scene_example):
   from pcdiff_jax.training import diffusion_stage
   enc = encoder.init(jax.random.key(0), scene_example.feats, CFG.encoder)
   stats = diffusion_stage.fit_latent(enc, CFG, scene_example, 1, batch_size=1)
-  cond = planner.condition(enc, stats, scene_example.feats, CFG)
+  cond = jax.jit(lambda f: planner.condition(enc, stats, f, CFG))(scene_example.feats)
   one = jax.tree_util.tree_map(lambda a: a[0], cond.inputs)
   params = denoiser_lib.init(jax.random.key(1), cond.mu[0], jnp.int32(0), one, CFG.diffusion.denoiser)
   extra = {"encoder": enc, "stats": stats}
@@ -103,19 +103,20 @@ def test_diffusion_loss_finite_with_masked_agents(scene_example):
   assert all(np.all(np.isfinite(np.asarray(g))) for g in jax.tree_util.tree_leaves(grads))
   # The denoiser is zero on padded agents and joint: agent 0's output depends on agent 1's input.
   y = jax.random.normal(jax.random.key(3), cond.mu.shape)
-  out = denoiser_lib.apply(params, y, jnp.int32(50), cond.inputs, CFG.diffusion.denoiser)
+  dc, dim = CFG.diffusion.denoiser, y.shape[-1]
+  # Jitted: the same ops run eagerly compile one by one (most of this test's time on CPU).
+  apply = jax.jit(lambda y, inputs: denoiser_lib.apply(params, y, jnp.int32(50), inputs, dc))
+  out = apply(y, cond.inputs)
   assert float(jnp.abs(out[0, 5:]).max()) == 0.0
   # The y-independent context, computed once per chain (planner.sample), gives the same
   # output, per scene or shared by several samples of one scene (sample selection).
-  dc, dim = CFG.diffusion.denoiser, y.shape[-1]
-  ctx = denoiser_lib.context(params, cond.inputs, dc, dim)
-  np.testing.assert_allclose(denoiser_lib.apply_with_context(params, y, jnp.int32(50), ctx, dc), out,
-                             rtol=1e-5, atol=1e-5)
   ys = jnp.concatenate([y, 2.0 * y, -y])
-  shared = denoiser_lib.apply_with_context(params, ys, jnp.int32(50), ctx, dc)
+  with_context = jax.jit(lambda y, ys: [denoiser_lib.apply_with_context(
+      params, v, jnp.int32(50), denoiser_lib.context(params, cond.inputs, dc, dim), dc) for v in (y, ys)])
+  one, shared = with_context(y, ys)
+  np.testing.assert_allclose(one, out, rtol=1e-5, atol=1e-5)
   tiled = jax.tree_util.tree_map(lambda a: jnp.repeat(a, 3, 0), cond.inputs)
-  np.testing.assert_allclose(shared, denoiser_lib.apply(params, ys, jnp.int32(50), tiled, dc),
-                             rtol=1e-5, atol=1e-5)
+  np.testing.assert_allclose(shared, apply(ys, tiled), rtol=1e-5, atol=1e-5)
   del latent
 
 
