@@ -23,6 +23,14 @@ copied unchanged from --from:
 
   python -m experiments.finetune --policy simpl-ar --from checkpoints/pcdiff-cpu-v7 \
       --data 'data/synth20/train-*' --workdir runs/sa --rounds 2 --scenes 100 --encoder-steps 600
+
+--encoder-from DIR conditions the diffusion policy on another encoder from
+round 0 on: DIR's SIMPL-AR encoder (simpl_ar/, else encoder/), e.g. the
+lane-aware one of the line above; its rounds re-train the denoiser on that
+encoder's tokens and proposals, and WORKDIR/encoder is that encoder (v8):
+
+  python -m experiments.finetune --from checkpoints/pcdiff-cpu-v7 --encoder-from checkpoints/pcdiff-cpu-v7 \
+      --data 'data/synth20/train-*' --workdir runs/l4 --rounds 2 --scenes 300 --first-scene 5200 --steps 1000
 """
 from __future__ import annotations
 
@@ -46,6 +54,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                               formatter_class=argparse.RawDescriptionHelpFormatter)
   p.add_argument("--from", dest="source", required=True,
                  help="the model to start from: a training workdir or a shipped model folder")
+  p.add_argument("--encoder-from", default=None, metavar="DIR",
+                 help="condition the diffusion policy on DIR's SIMPL-AR encoder (simpl_ar/, else encoder/) "
+                      "instead of --from's; the rounds re-train the denoiser on it")
   p.add_argument("--data", required=True, nargs="+", help="training TFRecord file(s) or glob(s)")
   p.add_argument("--workdir", required=True, type=_args.output_dir)
   p.add_argument("--cache-dir", default=None, help="logged-example cache (default WORKDIR/cache)")
@@ -107,6 +118,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.error("--encoder-steps must be >= 0")
   if args.policy == "simpl-ar" and not args.encoder_steps:
     p.error("--policy simpl-ar trains SIMPL-AR's encoder only: give --encoder-steps")
+  if args.policy == "simpl-ar" and args.encoder_from:
+    p.error("--encoder-from is an option of --policy pcdiff (SIMPL-AR is its encoder)")
   if args.policy == "simpl-ar" and args.targets != "rejoin":
     p.error("--targets guided is an option of --policy pcdiff")
   if not 1 <= args.teacher_guided_steps <= 5 or args.teacher_inner_steps < 1:
@@ -163,13 +176,25 @@ def _publish_simpl_ar(round_dir: str, source: str, workdir: str) -> None:
   _copy_dir(os.path.join(round_dir, encoder_stage.STAGE_DIR), os.path.join(workdir, encoder_stage.SIMPL_AR_DIR))
 
 
-def _publish(round_dir: str, source: str, workdir: str) -> None:
+def _publish(round_dir: str, encoder_dir: str, workdir: str) -> None:
   """WORKDIR/diffusion := the round's model; WORKDIR/encoder := the round's
-  fine-tuned encoder, else the source's."""
+  fine-tuned encoder, else the one the policy was conditioned on (ENCODER_DIR)."""
   encoder = os.path.join(round_dir, "encoder")
   for stage, src in (("diffusion", os.path.join(round_dir, "diffusion")),
-                     ("encoder", encoder if os.path.isdir(encoder) else os.path.join(source, "encoder"))):
+                     ("encoder", encoder if os.path.isdir(encoder) else encoder_dir)):
     _copy_dir(src, os.path.join(workdir, stage))
+
+
+def _swap_encoder(models, model_cfg, folder: str):
+  """(models, cfg) conditioned on FOLDER's SIMPL-AR encoder, and that encoder's stage folder."""
+  from pcdiff_jax.training import encoder_stage
+  if not os.path.isdir(folder):
+    raise FileNotFoundError(f"--encoder-from {folder}: no such folder")
+  params, enc_cfg = encoder_stage.load_simpl_ar(folder)
+  if enc_cfg.features != model_cfg.features:
+    raise ValueError(f"--encoder-from {folder}: its encoder reads other features than the policy's")
+  return (models.replace(encoder=params), dataclasses.replace(model_cfg, encoder=enc_cfg.encoder),
+          os.path.join(folder, encoder_stage.simpl_ar_dir(folder)))
 
 
 def main(argv=None) -> int:
@@ -193,6 +218,9 @@ def main(argv=None) -> int:
         models = encoder.with_new_inputs(models, enc_cfg)
     else:
       models, model_cfg = diffusion_stage.load(args.source)
+      encoder_dir = os.path.join(args.source, "encoder")
+      if args.encoder_from:
+        models, model_cfg, encoder_dir = _swap_encoder(models, model_cfg, args.encoder_from)
       if args.lane_inputs:
         from pcdiff_jax.model import denoiser
         den_cfg = dataclasses.replace(model_cfg.diffusion.denoiser, lane_inputs=True)
@@ -224,7 +252,6 @@ def main(argv=None) -> int:
     spec = encoder_stage.cache_spec(model_cfg)
     logged, _ = data_lib.load_or_build(files, spec, cache, "train", progress=not args.no_progress)
     os.makedirs(args.workdir, exist_ok=True)
-    source = args.source
     history, gathered = [], [_read_extra(path, logged) for path in _expand(args.extra_on_policy)]
     for r in range(args.rounds):
       round_dir = os.path.join(args.workdir, f"round-{r}")
@@ -268,8 +295,8 @@ def main(argv=None) -> int:
       if simpl:
         _publish_simpl_ar(round_dir, args.source, args.workdir)
       else:
-        _publish(round_dir, source, args.workdir)
-        source = args.workdir
+        _publish(round_dir, encoder_dir, args.workdir)
+        encoder_dir = os.path.join(args.workdir, "encoder")
     out = {"from": args.source, "rounds": history, "args": vars(args)}
     with open(os.path.join(args.workdir, "finetune_summary.json"), "w") as f:
       json.dump(out, f, indent=2)

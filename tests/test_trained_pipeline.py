@@ -167,6 +167,17 @@ def test_finetune_simpl_ar_trains_its_own_encoder_only(tiny_trained, womd_path, 
   assert finetune.main(again + ["--extra-on-policy", extra, "--lane-inputs"]) == 0
   lanes, lanes_cfg = pcdiff_jax.pretrained(path=str(tmp_path / "sa2"), stage="simpl-ar")
   assert lanes_cfg.encoder.lane_inputs and "in_lane" in lanes["params"]
+  # --encoder-from (v8): ours conditioned on that lane-aware encoder; its round re-trains the
+  # denoiser on it, and the result's encoder (policy and stage folder) is that encoder.
+  swapped = str(tmp_path / "swap")
+  assert finetune.main(["--from", source, "--encoder-from", str(tmp_path / "sa2"), "--data", womd_path,
+                        "--workdir", swapped, "--cache-dir", os.path.join(tiny_trained["work"], "cache"),
+                        "--scenes", "1", "--steps", "1", "--times", "12", "--max-agents", "8",
+                        "--batch-size", "2", "--no-progress"]) == 0
+  ours, ours_cfg = pcdiff_jax.pretrained(path=swapped)
+  assert ours_cfg.encoder.lane_inputs and same(ours.encoder, lanes)
+  assert not same(ours.denoiser, models.denoiser)
+  assert same(pcdiff_jax.pretrained(path=swapped, stage="encoder")[0], lanes)
   bad = tmp_path / "bad.npz"
   bad.write_text("not an archive")
   assert finetune.main(again + ["--extra-on-policy", str(bad)]) == 2
