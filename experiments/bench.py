@@ -128,6 +128,18 @@ def bench_encoder(path: str, presets: list[str], repeats: int) -> list[dict]:
   return rows
 
 
+def _config_of(preset: str):
+  """The Config of a preset name, or the one a model folder (e.g. the shipped
+  checkpoints/pcdiff-cpu-v8) was trained with: its architecture, inputs and
+  sizes, so the timings are those of that model (weights stay untrained:
+  they do not change the cost)."""
+  if os.path.isdir(preset):
+    from pcdiff_jax import shipped
+    return shipped.read_config(preset)
+  from pcdiff_jax.config import get_config
+  return get_config(preset)
+
+
 def _policy_models(state, cfg):
   """Untrained Models for cfg on one scene (random orthonormal latent basis)."""
   from pcdiff_jax.model import denoiser, encoder, features, latent, planner
@@ -258,10 +270,9 @@ def bench_fused_vs_loop(state, cfg, num_steps: int, repeats: int) -> dict:
 
 def bench_policy(path: str, preset: str, agent_counts: list[int], ddim_steps: list[int],
                  batch_sizes: list[int], repeats: int) -> dict:
-  from pcdiff_jax.config import get_config
   from pcdiff_jax.data import womd
   from pcdiff_jax.sim import env
-  base = get_config(preset)
+  base = _config_of(preset)
   state = env.reset(womd.load(path)[0])
   with_agents = lambda a: dataclasses.replace(
       base, features=dataclasses.replace(base.features, max_agents=a))
@@ -280,12 +291,11 @@ def bench_guidance(path: str, preset: str, repeats: int) -> dict:
   with objective and with adversarial guidance (default GuidanceConfig), the
   road field built beforehand as the actor does at init; and that build."""
   from pcdiff_jax import policy
-  from pcdiff_jax.config import get_config
   from pcdiff_jax.data import womd
   from pcdiff_jax.model.guidance import GuidanceConfig, road_of
   from pcdiff_jax.sim import env
   state = env.reset(womd.load(path)[0])
-  cfg = get_config(preset)
+  cfg = _config_of(preset)
   models = _policy_models(state, cfg)
   rng = jax.random.PRNGKey(2)
   out = {"agents": cfg.features.max_agents, "ddim_steps": 5}
@@ -307,12 +317,11 @@ def bench_lane_inputs(path: str, preset: str, repeats: int) -> dict:
   the shipped model's since v6) cost: one cold replanning of one scene (65
   agents, 5 DDIM steps) without and with them, and their computation alone."""
   from pcdiff_jax import policy
-  from pcdiff_jax.config import get_config
   from pcdiff_jax.data import womd
   from pcdiff_jax.model import features, lane_context
   from pcdiff_jax.sim import env
   state = env.reset(womd.load(path)[0])
-  base = get_config(preset)
+  base = _config_of(preset)
   rng = jax.random.PRNGKey(2)
   pcfg = policy.PolicyConfig(ddim_steps=5, warm_start=False)
   out = {"agents": base.features.max_agents, "ddim_steps": 5}
@@ -331,12 +340,12 @@ def bench_devices(path: str, preset: str, counts: list[int], train_steps: int, r
   """Training steps/s and rollout scenes/s on meshes of the first N devices
   (N = 1 is the one-device code path, without a mesh)."""
   from pcdiff_jax import distributed, evaluation, policy
-  from pcdiff_jax.config import MetricsConfig, get_config
+  from pcdiff_jax.config import MetricsConfig
   from pcdiff_jax.data import womd
   from pcdiff_jax.sim import env
   from pcdiff_jax.training import data as data_lib
   from pcdiff_jax.training import encoder_stage, trainer
-  cfg = get_config(preset)
+  cfg = _config_of(preset)
   state = womd.load(path)[0]
   counts = [n for n in counts if n <= jax.device_count()]
   mesh_of = lambda n: distributed.data_mesh(n) if n > 1 else None
@@ -408,7 +417,9 @@ def main(argv=None) -> int:
   p.add_argument("--repeats", type=int, default=5)
   p.add_argument("--encoder-presets", nargs="*", default=["cpu", "paper"],
                  help="config presets for the encoder benchmark (none: skip it)")
-  p.add_argument("--policy-preset", default="cpu", help="config preset of the policy benchmark")
+  p.add_argument("--policy-preset", default="cpu",
+                 help="config preset of the policy benchmark, or a model folder whose config to time "
+                      "(e.g. checkpoints/pcdiff-cpu-v8: the shipped model's inputs and sizes)")
   p.add_argument("--agents", type=int, nargs="+", default=[8, 16, 32, 65, 128],
                  help="padded agent counts (SDC included) for the policy scaling")
   p.add_argument("--ddim-steps", type=int, nargs="+", default=[1, 5, 10, 25])

@@ -109,3 +109,12 @@ def test_make_train_passes_only_options_its_clis_accept(tmp_path):
     cli = importlib.import_module(command[2])
     if hasattr(cli, "parse_args"):
       cli.parse_args(command[3:])
+
+
+def test_bench_times_a_model_folders_config_or_a_preset():
+  from experiments import bench
+  from pcdiff_jax import shipped
+  from pcdiff_jax.config import get_config
+  folder = shipped.checkpoint_dir()
+  assert bench._config_of(folder) == shipped.read_config(folder)   # e.g. the encoder's lane inputs
+  assert bench._config_of("tiny") == get_config("tiny")

@@ -77,3 +77,17 @@ def test_grid_values_equal_the_exact_signed_distance():
   grid = np.stack(np.meshgrid(ticks, ticks, indexing="ij"), -1).reshape(-1, 2) + np.asarray(field.origin)
   exact = geometry.signed_distance_to_road_edges(jnp.asarray(grid, jnp.float32), *edges)
   np.testing.assert_allclose(np.asarray(field.values).reshape(-1), np.asarray(exact), atol=1e-4)
+
+
+def test_tiles_against_their_nearest_samples_give_the_brute_force_field():
+  # Each tile of cells is computed against the `candidates` samples nearest its centre;
+  # `inexact_cells` counts the cells that choice cannot prove exact.
+  edges, centre = _straight_road(), jnp.array([0.3, 0.7])
+  brute = road_field.from_edges(*edges, centre, size=45, spacing=1.5)        # 482 samples < 1024: all
+  tiled = lambda k: road_field.from_edges(*edges, centre, size=45, spacing=1.5, tile=4, candidates=k)
+  unproven = lambda k: int(road_field.inexact_cells(*edges, centre, 45, 1.5, tile=4, candidates=k))
+  assert unproven(128) == 0
+  np.testing.assert_array_equal(np.asarray(tiled(128).values), np.asarray(brute.values))
+  # Too few candidates: cells come out wrong, and the check counts at least those.
+  wrong = int(np.sum(np.abs(np.asarray(tiled(16).values - brute.values)) > 1e-4))
+  assert 0 < wrong <= unproven(16)
