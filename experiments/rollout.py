@@ -59,6 +59,9 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--select-map-weight", type=float, default=evaluation.EvalConfig.select_map_weight,
                  help="pcdiff with --select-samples > 1: also prefer the sample that stays on the road, "
                       "with this weight on its J_map (m^2; 0 = off; builds a road field per scenario)")
+  p.add_argument("--select-stride", type=int, default=evaluation.EvalConfig.select_stride,
+                 help="pcdiff with --select-samples > 1: score the samples' overlaps and J_map at every "
+                      "N-th step of the 3 s lookahead (cheaper; 1 = every step)")
   p.add_argument("--simpl-ar-sample", action="store_true",
                  help="simpl-ar: draw each agent's mode by its probability (default: the top mode)")
   p.add_argument("--num-rollouts", type=int, default=1,
@@ -99,7 +102,7 @@ def parse_args(argv=None) -> argparse.Namespace:
   if args.method in evaluation.LEARNED and not args.checkpoint:
     p.error(f"--method {args.method} needs --checkpoint WORKDIR")
   for name in ("num_steps", "max_agents", "batch_size", "ddim_steps", "replan_every", "num_rollouts",
-               "seeds", "select_samples"):
+               "seeds", "select_samples", "select_stride"):
     if getattr(args, name) < 1:
       p.error(f"--{name.replace('_', '-')} must be >= 1")
   if args.select_map_weight < 0:
@@ -142,7 +145,7 @@ def main(argv=None) -> int:
                               warm_step=args.warm_step, warm_ddim_steps=args.warm_ddim_steps,
                               temporal_ensemble=tuple(args.temporal_ensemble),
                               simpl_ar_sample=args.simpl_ar_sample, select_samples=args.select_samples,
-                              select_map_weight=args.select_map_weight,
+                              select_map_weight=args.select_map_weight, select_stride=args.select_stride,
                               metrics=MetricsConfig(max_reactive_agents=args.max_agents),
                               guidance=GuidanceConfig(
                                   mode=args.guidance, w_map=args.w_map, w_coll=args.w_coll,

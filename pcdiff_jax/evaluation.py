@@ -57,7 +57,8 @@ class EvalConfig:
   (`policy.PolicyConfig`). select_samples: the diffusion policies draw that
   many joint plans per replan and keep, per agent, the one that collides
   least (`PolicyConfig.select_samples`), select_map_weight: and that leaves
-  the road least (`PolicyConfig.select_map_weight`). simpl_ar_sample: SIMPL-AR draws its modes by their
+  the road least (`PolicyConfig.select_map_weight`), scored at every
+  select_stride-th step (`PolicyConfig.select_stride`). simpl_ar_sample: SIMPL-AR draws its modes by their
   probabilities instead of taking the top mode.
 
   The learned methods model up to `metrics.max_reactive_agents` + 1 agents
@@ -87,11 +88,12 @@ class EvalConfig:
   max_scenarios: Optional[int] = None
   warm_start: bool = True
   warm_step: int = 30
-  warm_ddim_steps: int = 2
+  warm_ddim_steps: int = 1
   temporal_ensemble: tuple[float, float] = (0.3, 0.0)
   simpl_ar_sample: bool = False
   select_samples: int = 4
   select_map_weight: float = 30.0
+  select_stride: int = 3
 
   @property
   def adversarial_scores(self) -> bool:
@@ -140,7 +142,8 @@ def _method_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
                              warm_step=cfg.warm_step, warm_ddim_steps=cfg.warm_ddim_steps,
                              temporal_ensemble=cfg.temporal_ensemble,
                              select_samples=cfg.select_samples,
-                             select_map_weight=cfg.select_map_weight)
+                             select_map_weight=cfg.select_map_weight,
+                             select_stride=cfg.select_stride)
   return policy.actor(with_agent_cap(model_cfg, cfg.metrics), pcfg), models
 
 

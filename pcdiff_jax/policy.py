@@ -78,6 +78,10 @@ class PolicyConfig:
   fewer collisions, 3x better realism, 0.6 m better minADE than cold plans).
   Cold and warm chains are one while loop (`diffusion.ddim_sample_either`),
   so a vmapped batch pays the cold sampler only at its first replan.
+  warm_ddim_steps: 1 since session 11 (2 before): with select_stride 3, what
+  brings the default closed-loop step from 41.5 to 31.7 ms (65 agents, 2 CPU
+  cores; docs/BENCHMARKS.md) at 3.96 / 1.96% collisions / off-road on the
+  first 50 val scenes against 3.59 / 1.76 (docs/RESULTS.md, "Session 11").
 
   temporal_ensemble: (m_accel, m_yaw_rate), the weight of the earlier plans
   in the plan that is executed, per action channel (ACT's temporal ensembling
@@ -118,6 +122,11 @@ class PolicyConfig:
   since session 9 (docs/RESULTS.md, "Selection with a map term"): on the
   first 50 val scenes, weight 0 / 10 / 30 / 100 gave 6.1 / 2.9 / 2.6 / 2.7%
   off-road at 4.3 / 5.1 / 5.2 / 5.2% collisions, same realism.
+
+  select_stride: overlaps and J_map are scored at every N-th step of the
+  lookahead only (overlap counts weighted N times, so the two terms keep
+  their balance). Default 3 since session 11 (with warm_ddim_steps 1, above):
+  the overlap counts were 7 of the 41 ms of a closed-loop step.
   """
   ddim_steps: int = 5
   eta: float = 0.0
@@ -130,11 +139,12 @@ class PolicyConfig:
   prior_centre: str = "mean"
   warm_start: bool = True
   warm_step: int = 30
-  warm_ddim_steps: int = 2
+  warm_ddim_steps: int = 1
   temporal_ensemble: tuple[float, float] = (0.3, 0.0)
   select_samples: int = 4
   select_lookahead: int = 30
   select_map_weight: float = 30.0
+  select_stride: int = 3
 
 
 @struct.dataclass
@@ -250,7 +260,7 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
       road_here = road.in_frame(feats.scene_xy, feats.scene_yaw)
       road_here = jax.tree_util.tree_map(lambda a: a[None], road_here)   # a batch of 1 for map_cost
     y0 = select_sample(y0, models, cond, batched, cfg, policy.select_lookahead, keep,
-                       road_here, policy.select_map_weight, policy.guidance)
+                       road_here, policy.select_map_weight, policy.guidance, policy.select_stride)
   actions = dynamics.clip_action(latent.decode(y0[0], models.stats), cfg.kinematics)  # (A, T, 2)
   if policy.execute == "track":   # the world-frame path is only needed to track it
     states = dynamics.rollout(latent.initial_states(cond.speed[0]), actions, cfg.kinematics.dt)
@@ -266,13 +276,14 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
 def select_sample(y0: Array, models: Models, cond: planner.Conditioning, batched, cfg: Config,
                   lookahead: int, keep: Array, road: Optional[RoadField] = None,
                   map_weight: float = 0.0,
-                  guidance: guidance_lib.GuidanceConfig = guidance_lib.GuidanceConfig()) -> Array:
+                  guidance: guidance_lib.GuidanceConfig = guidance_lib.GuidanceConfig(),
+                  stride: int = 1) -> Array:
   """(1, A, d): per agent, one of the S joint samples y0 (S, A, d) of one scene
   (cond, batched: that scene repeated S times) such that the chosen plans
-  overlap least over their first `lookahead` steps (`PolicyConfig.select_samples`),
+  overlap least over their first `lookahead` steps, every `stride`-th (`PolicyConfig.select_samples`),
   plus map_weight x each sample's J_map on `road` (the scene's field in the
   scene frame) when map_weight > 0; agents where keep (A,) keep sample 0."""
-  states = planner.decode_states(models.stats, cond, y0, cfg)[..., :lookahead, :]   # (S, A, L, 4)
+  states = planner.decode_states(models.stats, cond, y0, cfg)[..., :lookahead:stride, :]   # (S, A, L, 4)
   xy, yaw = planner.to_scene(states, batched)
   feats = jax.tree_util.tree_map(lambda a: a[0], batched)
   length, width = planner.agent_size(feats)
@@ -288,8 +299,10 @@ def select_sample(y0: Array, models: Models, cond: planner.Conditioning, batched
   # ICM starts from each agent's best unary sample (sample 0 on ties) and never moves a kept
   # agent: a zero unary keeps it on sample 0.
   unary = jnp.where(keep[:, None], 0.0, unary)
+  # Overlaps counted at every stride-th step weigh stride times: the same scale against J_map
+  # (a mean over the steps) as with every step.
   choice = joint_selection.iterated_conditional_modes(
-      unary, coll, feats.agent_valid & ~keep, 1.0, sweeps=2, order=jnp.arange(num))
+      unary, coll, feats.agent_valid & ~keep, float(stride), sweeps=2, order=jnp.arange(num))
   return jnp.take_along_axis(y0, choice[None, :, None], axis=0)
 
 
@@ -430,6 +443,8 @@ def validate(cfg: Config, policy: PolicyConfig) -> None:
     raise ValueError(f"select_samples must be in [1, 64], got {policy.select_samples}")
   if not 1 <= policy.select_lookahead <= cfg.encoder.horizon:
     raise ValueError(f"select_lookahead must be in [1, {cfg.encoder.horizon}], got {policy.select_lookahead}")
+  if not 1 <= policy.select_stride <= policy.select_lookahead:
+    raise ValueError(f"select_stride must be in [1, select_lookahead], got {policy.select_stride}")
   if policy.select_map_weight < 0:
     raise ValueError(f"select_map_weight must be >= 0, got {policy.select_map_weight}")
   policy.guidance.validate()

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -261,10 +262,10 @@ def test_sample_selection_keeps_the_least_colliding_joint_plan(models):
   # A small road field keeps the test's compiles short; the policy's default is 256 x 256.
   g = guidance_lib.GuidanceConfig(field_size=64)
 
-  @jax.jit
-  def candidates(road):
+  @functools.partial(jax.jit, static_argnums=1)
+  def candidates(road, stride=1):
     """Every candidate pair's overlaps (A, S, A, S) and each candidate's J_map (A, S)."""
-    states = planner.decode_states(models.stats, cond, y0, CFG)[..., :30, :]
+    states = planner.decode_states(models.stats, cond, y0, CFG)[..., :30:stride, :]
     xy, yaw = planner.to_scene(states, batched)
     length, width = planner.agent_size(feats)
     coll = joint_selection.collision_counts(jnp.moveaxis(xy, 0, 1), jnp.moveaxis(yaw, 0, 1),
@@ -274,8 +275,8 @@ def test_sample_selection_keeps_the_least_colliding_joint_plan(models):
                                  pursuer=jnp.int32(-1), evader=jnp.int32(-1))
     return coll, guidance_lib.map_cost(xy, yaw, agents, road, g).T
 
-  select = jax.jit(lambda road, weight: policy.select_sample(y0, models, cond, batched, CFG, 30, keep,
-                                                              road, weight, g), static_argnums=1)
+  select = jax.jit(lambda road, weight, stride=1: policy.select_sample(
+      y0, models, cond, batched, CFG, 30, keep, road, weight, g, stride), static_argnums=(1, 2))
   road = policy.road_for(state, policy.PolicyConfig(select_samples=s, select_map_weight=1.0, guidance=g))
   assert road.values.shape[-1] == g.field_size                    # a real field, not the placeholder
   road = jax.tree_util.tree_map(lambda a: a[None], road.in_frame(feats.scene_xy, feats.scene_yaw))
@@ -287,6 +288,10 @@ def test_sample_selection_keeps_the_least_colliding_joint_plan(models):
   choice = np.asarray(jnp.argmax(jnp.all(chosen == y0, -1), 0))          # (A,) the sample each agent kept
   assert int(choice[0]) == 0                                              # the SDC keeps sample 0
   assert overlaps(choice) <= overlaps(np.zeros_like(choice))
+  # select_stride: overlaps counted at every 3rd step of the lookahead, same guarantee on those.
+  coll = np.asarray(candidates(road, 3)[0])
+  choice = np.asarray(jnp.argmax(jnp.all(select(road, 0.0, 3) == y0, -1), 0))
+  assert int(choice[0]) == 0 and overlaps(choice) <= overlaps(np.zeros_like(choice))
   # Equally likely candidates without overlaps: everyone keeps sample 0.
   free = joint_selection.iterated_conditional_modes(jnp.zeros((4, 3)), jnp.zeros((4, 3, 4, 3)),
                                                     jnp.ones(4, bool), 1.0, 2, jnp.arange(4))
@@ -311,3 +316,5 @@ def test_sample_selection_keeps_the_least_colliding_joint_plan(models):
   assert select._cache_size() == 1
   with pytest.raises(ValueError, match="select_samples"):
     policy.actor(CFG, policy.PolicyConfig(select_samples=0))
+  with pytest.raises(ValueError, match="select_stride"):
+    policy.actor(CFG, policy.PolicyConfig(select_stride=31))
