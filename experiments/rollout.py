@@ -17,6 +17,7 @@ import sys
 
 from experiments import _args
 from pcdiff_jax import evaluation
+from pcdiff_jax.policy import PolicyConfig
 from pcdiff_jax.config import MetricsConfig
 from pcdiff_jax.model.guidance import MODES as GUIDANCE_MODES
 from pcdiff_jax.model.guidance import GuidanceConfig
@@ -107,6 +108,9 @@ def parse_args(argv=None) -> argparse.Namespace:
       p.error(f"--{name.replace('_', '-')} must be >= 1")
   if args.select_map_weight < 0:
     p.error("--select-map-weight must be >= 0")
+  lookahead = PolicyConfig.select_lookahead
+  if args.select_stride > lookahead:
+    p.error(f"--select-stride must be <= {lookahead} (the selection's lookahead, in steps)")
   if not 0 <= args.warm_step <= 99:
     p.error("--warm-step must be in [0, 99]")
   if not all(0.0 <= m < 1.0 for m in args.temporal_ensemble):

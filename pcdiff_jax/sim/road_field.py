@@ -59,29 +59,23 @@ def from_edges(edge_xy: Array, edge_dir: Array, edge_ids: Array, edge_valid: Arr
   centre (d: its nearest sample's distance, r: the tile's half diagonal), and
   `inexact_cells` counts the cells where that is not proven. Memory stays O(tile^2 x candidates).
   """
-  origin = center_xy - spacing * (size - 1) / 2.0
+  origin, ticks, pairs = _tile_layout(center_xy, size, spacing, tile)
   prior_dir = jnp.concatenate([edge_dir[:1], edge_dir[:-1]])
   same_line = jnp.concatenate([jnp.zeros((1,), bool), (edge_ids[1:] == edge_ids[:-1]) & edge_valid[:-1]])
   edges = (edge_xy, edge_dir, prior_dir, same_line, edge_valid)
-  n_tiles = -(-size // tile)
-  ticks = (jnp.arange(n_tiles * tile, dtype=jnp.float32) * spacing).reshape(n_tiles, tile)
 
   def tile_values(ij):
     xs, ys = ticks[ij[0]] + origin[0], ticks[ij[1]] + origin[1]
     query = jnp.stack(jnp.meshgrid(xs, ys, indexing="ij"), -1).reshape(-1, 2)   # (tile^2, 2)
     if candidates < edge_xy.shape[0]:
-      centre = jnp.stack([jnp.mean(xs), jnp.mean(ys)])
-      _, near = jax.lax.top_k(-_distances(centre, edge_xy, edge_valid), candidates)
+      _, near = _nearest_to_tile(xs, ys, edge_xy, edge_valid, candidates)
       sub = [a[near] for a in edges]
     else:
       sub = edges
     return _signed_distance(query, *sub).reshape(tile, tile)
 
-  pairs = jnp.stack(jnp.meshgrid(jnp.arange(n_tiles), jnp.arange(n_tiles), indexing="ij"), -1).reshape(-1, 2)
-  values = jax.lax.map(tile_values, pairs).reshape(n_tiles, n_tiles, tile, tile)
-  values = values.transpose(0, 2, 1, 3).reshape(n_tiles * tile, n_tiles * tile)[:size, :size]
-  return RoadField(values=values, origin=origin, spacing=jnp.float32(spacing),
-                   frame_xy=jnp.zeros(2, jnp.float32), frame_yaw=jnp.float32(0.0))
+  return RoadField(values=_untile(jax.lax.map(tile_values, pairs), size), origin=origin,
+                   spacing=jnp.float32(spacing), frame_xy=jnp.zeros(2, jnp.float32), frame_yaw=jnp.float32(0.0))
 
 
 def inexact_cells(edge_xy: Array, edge_dir: Array, edge_ids: Array, edge_valid: Array,
@@ -95,19 +89,39 @@ def inexact_cells(edge_xy: Array, edge_dir: Array, edge_ids: Array, edge_valid: 
   if candidates >= edge_xy.shape[0]:
     return jnp.int32(0)
   field = from_edges(edge_xy, edge_dir, edge_ids, edge_valid, center_xy, size, spacing, tile, candidates)
+  origin, ticks, pairs = _tile_layout(center_xy, size, spacing, tile)
+
+  def bound(ij):
+    xs, ys = ticks[ij[0]] + origin[0], ticks[ij[1]] + origin[1]
+    kth_dist = _nearest_to_tile(xs, ys, edge_xy, edge_valid, candidates)[0][-1]
+    off_centre = jnp.hypot((xs - jnp.mean(xs))[:, None], (ys - jnp.mean(ys))[None, :])
+    return kth_dist - off_centre
+  return jnp.sum(jnp.abs(field.values) > _untile(jax.lax.map(bound, pairs), size)).astype(jnp.int32)
+
+
+def _tile_layout(center_xy: Array, size: int, spacing: float, tile: int):
+  """The grid's origin (2,), each tile's cell offsets from it (n_tiles, tile)
+  along one axis, and the tiles' (i, j) indices (n_tiles^2, 2)."""
   origin = center_xy - spacing * (size - 1) / 2.0
   n_tiles = -(-size // tile)
-  ticks = jnp.arange(n_tiles * tile, dtype=jnp.float32) * spacing
-  tile_centre = (jnp.arange(n_tiles * tile) // tile * tile + (tile - 1) / 2.0) * spacing
-
-  def kth(ij):
-    centre = origin + jnp.stack([tile_centre[ij[0] * tile], tile_centre[ij[1] * tile]])
-    return -jax.lax.top_k(-_distances(centre, edge_xy, edge_valid), candidates)[0][-1]
+  ticks = (jnp.arange(n_tiles * tile, dtype=jnp.float32) * spacing).reshape(n_tiles, tile)
   pairs = jnp.stack(jnp.meshgrid(jnp.arange(n_tiles), jnp.arange(n_tiles), indexing="ij"), -1).reshape(-1, 2)
-  kth_dist = jnp.repeat(jnp.repeat(jax.lax.map(kth, pairs).reshape(n_tiles, n_tiles), tile, 0), tile, 1)
-  off_centre = jnp.hypot((ticks - tile_centre)[:, None], (ticks - tile_centre)[None, :])
-  bound = (kth_dist - off_centre)[:size, :size]
-  return jnp.sum(jnp.abs(field.values) > bound).astype(jnp.int32)
+  return origin, ticks, pairs
+
+
+def _nearest_to_tile(xs: Array, ys: Array, edge_xy: Array, edge_valid: Array, candidates: int):
+  """Distances (candidates,), ascending, and indices of the samples nearest
+  the centre of the tile with cell coordinates xs, ys (tile,)."""
+  centre = jnp.stack([jnp.mean(xs), jnp.mean(ys)])
+  neg_dist, near = jax.lax.top_k(-_distances(centre, edge_xy, edge_valid), candidates)
+  return -neg_dist, near
+
+
+def _untile(per_tile: Array, size: int) -> Array:
+  """(n_tiles^2, tile, tile) tile-major values -> the (size, size) grid."""
+  n_tiles, tile = int(round(per_tile.shape[0] ** 0.5)), per_tile.shape[-1]
+  grid = per_tile.reshape(n_tiles, n_tiles, tile, tile).transpose(0, 2, 1, 3)
+  return grid.reshape(n_tiles * tile, n_tiles * tile)[:size, :size]
 
 
 def _distances(point: Array, edge_xy: Array, valid: Array) -> Array:
