@@ -50,6 +50,10 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="pcdiff --warm-start: the diffusion step the previous plan is noised to (of 100)")
   p.add_argument("--warm-ddim-steps", type=int, default=evaluation.EvalConfig.warm_ddim_steps,
                  help="pcdiff --warm-start: DDIM steps from --warm-step")
+  p.add_argument("--jerk-limit", type=float, nargs=2, metavar=("RISE", "FALL"),
+                 default=evaluation.EvalConfig.jerk_limit,
+                 help="pcdiff: m/s^3 the executed acceleration may rise / fall per second from the "
+                      "last step's (0: no limit on that side)")
   p.add_argument("--temporal-ensemble", type=float, nargs=2, metavar=("ACCEL", "YAW_RATE"),
                  default=evaluation.EvalConfig.temporal_ensemble,
                  help="pcdiff: weights in [0, 1) of the earlier plans in the executed plan, per action "
@@ -115,6 +119,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.error("--warm-step must be in [0, 99]")
   if not all(0.0 <= m < 1.0 for m in args.temporal_ensemble):
     p.error("--temporal-ensemble weights must be in [0, 1)")
+  if not all(j >= 0.0 for j in args.jerk_limit):
+    p.error("--jerk-limit values must be >= 0 (m/s^3)")
   if not 1 <= args.warm_ddim_steps <= args.warm_step + 1:
     p.error("--warm-ddim-steps must be in [1, --warm-step + 1]")
   if args.max_scenarios is not None and args.max_scenarios < 1:
@@ -148,6 +154,7 @@ def main(argv=None) -> int:
                               max_scenarios=args.max_scenarios, warm_start=args.warm_start,
                               warm_step=args.warm_step, warm_ddim_steps=args.warm_ddim_steps,
                               temporal_ensemble=tuple(args.temporal_ensemble),
+                              jerk_limit=tuple(args.jerk_limit),
                               simpl_ar_sample=args.simpl_ar_sample, select_samples=args.select_samples,
                               select_map_weight=args.select_map_weight, select_stride=args.select_stride,
                               metrics=MetricsConfig(max_reactive_agents=args.max_agents),

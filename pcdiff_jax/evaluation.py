@@ -58,7 +58,8 @@ class EvalConfig:
   many joint plans per replan and keep, per agent, the one that collides
   least (`PolicyConfig.select_samples`), select_map_weight: and that leaves
   the road least (`PolicyConfig.select_map_weight`), scored at every
-  select_stride-th step (`PolicyConfig.select_stride`). simpl_ar_sample: SIMPL-AR draws its modes by their
+  select_stride-th step (`PolicyConfig.select_stride`); jerk_limit: their
+  executed acceleration's rate limit (`PolicyConfig.jerk_limit`). simpl_ar_sample: SIMPL-AR draws its modes by their
   probabilities instead of taking the top mode.
 
   The learned methods model up to `metrics.max_reactive_agents` + 1 agents
@@ -94,6 +95,7 @@ class EvalConfig:
   select_samples: int = 4
   select_map_weight: float = 30.0
   select_stride: int = 3
+  jerk_limit: tuple[float, float] = (0.0, 0.0)
 
   @property
   def adversarial_scores(self) -> bool:
@@ -143,7 +145,7 @@ def _method_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
                              temporal_ensemble=cfg.temporal_ensemble,
                              select_samples=cfg.select_samples,
                              select_map_weight=cfg.select_map_weight,
-                             select_stride=cfg.select_stride)
+                             select_stride=cfg.select_stride, jerk_limit=cfg.jerk_limit)
   return policy.actor(with_agent_cap(model_cfg, cfg.metrics), pcfg), models
 
 

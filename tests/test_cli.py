@@ -44,6 +44,9 @@ def test_rollout_cli_bad_arguments(tmp_path, capsys):
   with pytest.raises(SystemExit) as err:   # past the selection's lookahead: a usage error, not a traceback
     rollout.main(["--scenarios", "x", "--out", str(tmp_path), "--select-stride", "31"])
   assert err.value.code == 2 and "--select-stride must be <= 30" in capsys.readouterr().err
+  with pytest.raises(SystemExit) as err:
+    rollout.main(["--scenarios", "x", "--out", str(tmp_path), "--jerk-limit", "-1", "0"])
+  assert err.value.code == 2 and "--jerk-limit" in capsys.readouterr().err
   assert rollout.main(["--scenarios", str(tmp_path / "missing.tfrecord"), "--out", str(tmp_path / "o")]) == 2
   assert "missing.tfrecord" in capsys.readouterr().err
 

@@ -247,6 +247,25 @@ def test_temporal_ensemble_averages_the_plans_made_for_each_step(models):
     policy.actor(CFG, policy.PolicyConfig(temporal_ensemble=(1.0, 0.0)))
 
 
+def test_jerk_limit_moves_the_executed_acceleration_by_a_bounded_step():
+  from pcdiff_jax.sim.datatypes import Action
+  state = env.reset(make_scene(num_steps=91))
+  dt = CFG.kinematics.dt
+  np.testing.assert_allclose(np.asarray(policy.executed_accel(state, dt)), 0.0, atol=1e-4)   # the log's constant speeds
+  applied = jnp.array([[0.0, 0.0], [1.5, 0.0], [-2.0, 0.1], [0.5, 0.0]])
+  moved = env.step(state, Action(data=applied, valid=jnp.ones((4, 1), bool)), jnp.array([False, True, True, True]))
+  np.testing.assert_allclose(np.asarray(policy.executed_accel(moved, dt))[1:], [1.5, -2.0, 0.5], atol=1e-3)
+  wanted = jnp.array([[0.0, 0.0], [5.0, 0.2], [-8.0, 0.0], [0.4, -0.1]])
+  limited = np.asarray(jax.jit(lambda s, a: policy.limit_jerk(s, a, (2.0, 10.0), dt))(moved, wanted))
+  # Up by at most 2 m/s^3 x 0.1 s, down by at most 10 x 0.1; a small change and the yaw rates pass.
+  np.testing.assert_allclose(limited[1:, 0], [1.5 + 0.2, -2.0 - 1.0, 0.4], atol=1e-3)
+  np.testing.assert_array_equal(limited[:, 1], np.asarray(wanted)[:, 1])
+  one_sided = np.asarray(policy.limit_jerk(moved, wanted, (0.0, 10.0), dt))
+  assert abs(one_sided[1, 0] - 5.0) < 1e-6                       # rise 0: no limit upwards
+  with pytest.raises(ValueError, match="jerk_limit"):
+    policy.actor(CFG, policy.PolicyConfig(jerk_limit=(-1.0, 0.0)))
+
+
 def test_sample_selection_keeps_the_least_colliding_joint_plan(models):
   from pcdiff_jax.model import features as features_lib
   from pcdiff_jax.model import guidance as guidance_lib
