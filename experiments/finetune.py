@@ -49,6 +49,15 @@ from experiments import _args
 from pcdiff_jax.data import womd
 
 
+def _round_policy():
+  """The policy every shipped model's rounds rolled out: session 10's defaults
+  with one sample (no selection: the on-policy states should show the model's
+  own drift, not the collision filter's fixes) and no jerk limit; pinned so
+  that later changes of the inference defaults leave `make train` as it was."""
+  from pcdiff_jax import policy
+  return policy.PolicyConfig(select_samples=1, warm_ddim_steps=2, select_stride=1, jerk_limit=(0.0, 0.0))
+
+
 def parse_args(argv=None) -> argparse.Namespace:
   p = argparse.ArgumentParser(prog="python -m experiments.finetune", description=__doc__,
                               formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -261,10 +270,8 @@ def main(argv=None) -> int:
       if os.path.exists(path):
         on_policy, info = data_lib.read_examples(path)
       else:
-        # The rounds of every shipped model rolled the policy out without sample selection:
-        # the on-policy states should show the model's own drift, not the collision filter's fixes.
         on_policy, info = closed_loop.collect(
-            models, run_cfg, policy.PolicyConfig(select_samples=1), files, ocfg,
+            models, run_cfg, _round_policy(), files, ocfg,
             first=args.first_scene + r * args.scenes,
             count=args.scenes, batch_size=args.rollout_batch, seed=args.seed + r,
             progress=not args.no_progress, teacher=teacher, actor=actor)

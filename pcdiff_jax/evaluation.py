@@ -95,7 +95,7 @@ class EvalConfig:
   select_samples: int = 4
   select_map_weight: float = 30.0
   select_stride: int = 3
-  jerk_limit: tuple[float, float] = (0.0, 0.0)
+  jerk_limit: tuple[float, float] = (1.5, 5.0)
 
   @property
   def adversarial_scores(self) -> bool:

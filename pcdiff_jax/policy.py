@@ -134,7 +134,11 @@ class PolicyConfig:
   the next replan starts from the state this led to. 0 turns a side off.
   Plans drawn every 100 ms disagree in their first acceleration, which the
   log's drivers never do (|jerk| under 0.74 m/s^3 for 90% of the log's
-  vehicle steps, 2.3 for 99%).
+  vehicle steps, 2.3 for 99%). Default (1.5, 5) since session 12
+  (docs/RESULTS.md, "Session 12"): on the first 50 val scenes, v8, realism
+  W1 0.70 -> 0.42 (jerk W1 1.93 -> 1.04) with collisions 3.96 -> 3.68,
+  off-road 1.96 -> 1.66 and minADE 2.56 -> 2.44; a slower rise (1, 3 or 10)
+  smooths more but collides more (4.4-4.9%).
   """
   ddim_steps: int = 5
   eta: float = 0.0
@@ -153,7 +157,7 @@ class PolicyConfig:
   select_lookahead: int = 30
   select_map_weight: float = 30.0
   select_stride: int = 3
-  jerk_limit: tuple[float, float] = (0.0, 0.0)
+  jerk_limit: tuple[float, float] = (1.5, 5.0)
 
 
 @struct.dataclass
