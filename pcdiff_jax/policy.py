@@ -411,13 +411,7 @@ def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
     plan, plan_valid, path = jax.lax.cond(
         due, lambda: replan(models, state, ps, rng), lambda: (ps.plan, ps.plan_valid, ps.path))
     age = jnp.where(due, 0, ps.age)
-    if policy.execute == "track":
-      now = _track(state, path, age, policy.track_steps, cfg)
-    else:
-      now = jnp.take(plan, age, axis=1)                                  # (O, 2)
-    if any(policy.jerk_limit):
-      now = limit_jerk(state, now, policy.jerk_limit, cfg.kinematics.dt)
-    action = _controlled_action(state, ps.controlled, plan_valid, now)
+    action = _controlled_action(state, ps.controlled, plan_valid, _execute(state, plan, path, age, policy, cfg))
     new = ps.replace(plan=plan, plan_valid=plan_valid, path=path, age=age + 1)
     return ActorOutput(actor_state=new, action=action, is_controlled=ps.controlled)
 
@@ -493,23 +487,37 @@ def step(state: SimulatorState, models: Models, cfg: Config, rng: Array,
   selection's map term (the default), pass road=`road_for(state, policy)`
   made once per scenario to avoid rebuilding the road field (about 1 s) at
   every call. A stateless call always
-  plans cold (no warm start)."""
+  plans cold (no warm start); the jerk limit applies (it reads the state)."""
   controlled = controlled_or_default(state, cfg, controlled)
   plan, planned, path = plan_actions(models, state, cfg, policy, rng,
                                      pursuer_of(state, cfg, policy.guidance), road=road,
                                      controlled=controlled)
-  now = _track(state, path, 0, policy.track_steps, cfg) if policy.execute == "track" else plan[:, 0]
-  return _controlled_action(state, controlled, planned, now), controlled
+  return _controlled_action(state, controlled, planned, _execute(state, plan, path, 0, policy, cfg)), controlled
+
+
+def _execute(state: SimulatorState, plan: Array, path: Array, age, policy: PolicyConfig, cfg: Config) -> Array:
+  """(O, 2) the actions executed now: the plan's step `age` (or pure pursuit
+  of its path, execute="track"), within the jerk limit."""
+  if policy.execute == "track":
+    now = _track(state, path, age, policy.track_steps, cfg)
+  else:
+    now = jnp.take(plan, age, axis=1)
+  if any(policy.jerk_limit):
+    now = limit_jerk(state, now, policy.jerk_limit, cfg.kinematics.dt)
+  return now
 
 
 def executed_accel(state: SimulatorState, dt: float) -> Array:
   """(O,) each object's acceleration along its heading over the last step
   (0 at the first step of a log and where either step is invalid)."""
   sim = state.sim_trajectory
-  now, before = (datatypes.slice_time(sim, t) for t in (state.timestep, jnp.maximum(state.timestep - 1, 0)))
-  speed = lambda tr: jnp.sum(tr.vel_xy[..., 0, :] * geometry.unit(tr.yaw[..., 0])[..., :], -1)
-  valid = now.valid[..., 0] & before.valid[..., 0] & (state.timestep > 0)
-  return jnp.where(valid, (speed(now) - speed(before)) / dt, 0.0)
+  fields = (sim.vel_x, sim.vel_y, sim.yaw, sim.valid)      # only what the speeds need, not every field
+  (vx, vy, yaw, ok), (vx0, vy0, yaw0, ok0) = (
+      [a[..., 0] for a in datatypes.slice_time(fields, t)]
+      for t in (state.timestep, jnp.maximum(state.timestep - 1, 0)))
+  speed = lambda x, y, heading: x * jnp.cos(heading) + y * jnp.sin(heading)
+  valid = ok & ok0 & (state.timestep > 0)
+  return jnp.where(valid, (speed(vx, vy, yaw) - speed(vx0, vy0, yaw0)) / dt, 0.0)
 
 
 def limit_jerk(state: SimulatorState, actions: Array, limit, dt: float) -> Array:
