@@ -243,7 +243,7 @@ def bench_fused_vs_loop(state, cfg, num_steps: int, repeats: int) -> dict:
 
   jax.block_until_ready(python_loop(start, rng, models))          # compile
   loop_times = _time(lambda: python_loop(start, rng, models), repeats)
-  # Warm-started replanning (the default's DDIM steps from step 30 after the first plan), one sample.
+  # Warm-started replanning (the default's warm DDIM steps from its warm step after the first plan), one sample.
   warm = policy.actor(cfg, policy.PolicyConfig(ddim_steps=cfg.diffusion.ddim_steps, warm_start=True,
                                                select_samples=1))
   warm_t = _compiled_ms(lambda s, r, m: env.rollout(s, warm, num_steps, r, params=m).final_state,

@@ -55,7 +55,8 @@ def _round_policy():
   own drift, not the collision filter's fixes) and no jerk limit; pinned so
   that later changes of the inference defaults leave `make train` as it was."""
   from pcdiff_jax import policy
-  return policy.PolicyConfig(select_samples=1, warm_ddim_steps=2, select_stride=1, jerk_limit=(0.0, 0.0))
+  return policy.PolicyConfig(select_samples=1, warm_step=30, warm_ddim_steps=2, select_stride=1,
+                             temporal_ensemble=(0.3, 0.0), jerk_limit=(0.0, 0.0), warm_proposals=0)
 
 
 def parse_args(argv=None) -> argparse.Namespace:

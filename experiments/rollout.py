@@ -50,6 +50,10 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="pcdiff --warm-start: the diffusion step the previous plan is noised to (of 100)")
   p.add_argument("--warm-ddim-steps", type=int, default=evaluation.EvalConfig.warm_ddim_steps,
                  help="pcdiff --warm-start: DDIM steps from --warm-step")
+  p.add_argument("--warm-proposals", type=int, default=evaluation.EvalConfig.warm_proposals,
+                 help="pcdiff --warm-start with --select-samples S > 1: samples 1..N of a warm replan "
+                      "start from each agent's N most likely proposals instead of its previous plan "
+                      "(0 = off; at most S - 1)")
   p.add_argument("--jerk-limit", type=float, nargs=2, metavar=("RISE", "FALL"),
                  default=evaluation.EvalConfig.jerk_limit,
                  help="pcdiff: m/s^3 the executed acceleration may rise / fall per second from the "
@@ -123,6 +127,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.error("--jerk-limit values must be >= 0 (m/s^3)")
   if not 1 <= args.warm_ddim_steps <= args.warm_step + 1:
     p.error("--warm-ddim-steps must be in [1, --warm-step + 1]")
+  if not 0 <= args.warm_proposals <= args.select_samples - 1:
+    p.error("--warm-proposals must be in [0, --select-samples - 1]")
   if args.max_scenarios is not None and args.max_scenarios < 1:
     p.error("--max-scenarios must be >= 1")
   if args.num_steps > 80:
@@ -154,7 +160,7 @@ def main(argv=None) -> int:
                               max_scenarios=args.max_scenarios, warm_start=args.warm_start,
                               warm_step=args.warm_step, warm_ddim_steps=args.warm_ddim_steps,
                               temporal_ensemble=tuple(args.temporal_ensemble),
-                              jerk_limit=tuple(args.jerk_limit),
+                              jerk_limit=tuple(args.jerk_limit), warm_proposals=args.warm_proposals,
                               simpl_ar_sample=args.simpl_ar_sample, select_samples=args.select_samples,
                               select_map_weight=args.select_map_weight, select_stride=args.select_stride,
                               metrics=MetricsConfig(max_reactive_agents=args.max_agents),

@@ -59,7 +59,8 @@ class EvalConfig:
   least (`PolicyConfig.select_samples`), select_map_weight: and that leaves
   the road least (`PolicyConfig.select_map_weight`), scored at every
   select_stride-th step (`PolicyConfig.select_stride`); jerk_limit: their
-  executed acceleration's rate limit (`PolicyConfig.jerk_limit`). simpl_ar_sample: SIMPL-AR draws its modes by their
+  executed acceleration's rate limit (`PolicyConfig.jerk_limit`); warm_proposals:
+  their warm samples that start from proposals (`PolicyConfig.warm_proposals`). simpl_ar_sample: SIMPL-AR draws its modes by their
   probabilities instead of taking the top mode.
 
   The learned methods model up to `metrics.max_reactive_agents` + 1 agents
@@ -88,14 +89,15 @@ class EvalConfig:
   score_adversary: bool = False
   max_scenarios: Optional[int] = None
   warm_start: bool = True
-  warm_step: int = 30
+  warm_step: int = 90
   warm_ddim_steps: int = 1
-  temporal_ensemble: tuple[float, float] = (0.3, 0.0)
+  temporal_ensemble: tuple[float, float] = (0.7, 0.0)
   simpl_ar_sample: bool = False
   select_samples: int = 4
   select_map_weight: float = 30.0
   select_stride: int = 3
   jerk_limit: tuple[float, float] = (1.5, 5.0)
+  warm_proposals: int = 0
 
   @property
   def adversarial_scores(self) -> bool:
@@ -145,7 +147,8 @@ def _method_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
                              temporal_ensemble=cfg.temporal_ensemble,
                              select_samples=cfg.select_samples,
                              select_map_weight=cfg.select_map_weight,
-                             select_stride=cfg.select_stride, jerk_limit=cfg.jerk_limit)
+                             select_stride=cfg.select_stride, jerk_limit=cfg.jerk_limit,
+                             warm_proposals=cfg.warm_proposals)
   return policy.actor(with_agent_cap(model_cfg, cfg.metrics), pcfg), models
 
 

@@ -82,6 +82,14 @@ class PolicyConfig:
   brings the default closed-loop step from 41.5 to 31.7 ms (65 agents, 2 CPU
   cores; docs/BENCHMARKS.md) at 3.96 / 1.96% collisions / off-road on the
   first 50 val scenes against 3.59 / 1.76 (docs/RESULTS.md, "Session 11").
+  warm_step: 90 since session 13 (30 before): the previous plan keeps a
+  weight sqrt(abar_90) = 0.36 in the start of the chain (0.89 at step 30),
+  so each replan re-draws most of the plan from the current scene while
+  starting near the last one. On the first 50 val scenes (3 seeds, with the
+  jerk limit) collisions / off-road 3.25 / 1.50% -> 2.12 / 0.88% at realism
+  W1 0.41 -> 0.56 and minADE 2.44 -> 2.58 m, at no extra cost (the same one
+  DDIM step); steps 50 / 70 / 80 / 99 did less (docs/RESULTS.md, "Session 13").
+  The temporal ensemble's weight (below) then wins the realism back.
 
   temporal_ensemble: (m_accel, m_yaw_rate), the weight of the earlier plans
   in the plan that is executed, per action channel (ACT's temporal ensembling
@@ -91,10 +99,15 @@ class PolicyConfig:
   (1 - m). Plans drawn afresh every 100 ms disagree by their sampling noise,
   and the executed accelerations inherit it as jerk; averaging removes most
   of it at a lag of about m / (1 - m) replans. The warm start then continues
-  the ensembled plan. 0 is off for a channel. Default (0.3, 0): on the first
+  the ensembled plan. 0 is off for a channel. Default (0.3, 0) until session 12: on the first
   50 val scenes realism W1 1.09 -> 0.71 at the same collision and off-road
   rates; averaging the yaw rate too (0.5, 0.5) cost 4 points of each, as
   did a warm start closer to the previous plan (docs/RESULTS.md, "Models v5").
+  (0.7, 0) since session 13, with warm_step 90: on the first 50 val scenes
+  (3 seeds) 0.3 / 0.5 / 0.7 gave 2.12 / 1.93 / 2.45% collisions, 0.88 /
+  0.95 / 1.08% off-road at realism W1 0.56 / 0.48 / 0.34 and minADE 2.58 /
+  2.44 / 2.33 m (0.8: 2.85 / 1.03 / 0.27 / 2.32, 2 seeds); 0.7 is better than
+  session 12's defaults (3.25 / 1.50 / 0.41 / 2.44) on every column.
 
   select_samples: S > 1 draws S joint plans per replan (one batched chain)
   and keeps, per agent, the sample that collides least with the others'
@@ -139,6 +152,14 @@ class PolicyConfig:
   W1 0.70 -> 0.42 (jerk W1 1.93 -> 1.04) with collisions 3.96 -> 3.68,
   off-road 1.96 -> 1.66 and minADE 2.56 -> 2.44; a slower rise (1, 3 or 10)
   smooths more but collides more (4.4-4.9%).
+
+  warm_proposals: with warm starts and S = select_samples > 1, samples
+  1..n of a warm replan start from each agent's n most likely proposal
+  latents (noised to warm_step like the previous plan) instead of from its
+  previous plan, so the selection weighs continuing the plan (sample 0)
+  against fresh alternatives anchored on the proposals: warm samples of one
+  previous plan hardly differ, which left the selection little to choose
+  from. 0 (off) to min(S - 1, K).
   """
   ddim_steps: int = 5
   eta: float = 0.0
@@ -150,14 +171,15 @@ class PolicyConfig:
   track_steps: int = 5
   prior_centre: str = "mean"
   warm_start: bool = True
-  warm_step: int = 30
+  warm_step: int = 90
   warm_ddim_steps: int = 1
-  temporal_ensemble: tuple[float, float] = (0.3, 0.0)
+  temporal_ensemble: tuple[float, float] = (0.7, 0.0)
   select_samples: int = 4
   select_lookahead: int = 30
   select_map_weight: float = 30.0
   select_stride: int = 3
   jerk_limit: tuple[float, float] = (1.5, 5.0)
+  warm_proposals: int = 0
 
 
 @struct.dataclass
@@ -257,7 +279,7 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
   else:   # the first plan of a rollout (no agent has a previous one) is cold
     previous = latent.encode(warm.actions[feats.agent_index], models.stats)[None]   # (1, A, d)
     has = warm.has[feats.agent_index] & feats.agent_valid
-    centre = jnp.where(has[None, :, None], previous, cond.mu)
+    centre = warm_centres(cond, previous, has, policy.warm_proposals)
     g = policy.guidance
     y0 = planner.sample_cold_or_warm(
         models.denoiser, cond, cfg, rng, ~jnp.any(has), centre, policy.ddim_steps,
@@ -284,6 +306,24 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
   per_object = features_lib.scatter_to_objects(actions, feats, num_objects)
   planned = features_lib.scatter_to_objects(feats.agent_valid, feats, num_objects, fill=False)
   return per_object, planned.astype(bool), features_lib.scatter_to_objects(path, feats, num_objects)
+
+
+def warm_centres(cond: planner.Conditioning, previous: Array, has: Array, proposals: int) -> Array:
+  """(S, A, d) where each of the S samples of a warm replan starts (before
+  noising): the previous plan's latent previous (1, A, d) where an agent has
+  one (has (A,)), else its prior centre; samples 1..`proposals` from its
+  most likely proposals instead (`PolicyConfig.warm_proposals`)."""
+  centre = jnp.broadcast_to(jnp.where(has[None, :, None], previous, cond.mu), cond.mu.shape)
+  if proposals == 0:
+    return centre
+  ranked = top_proposals(cond.proposals[0], cond.probs[0], proposals)           # (n, A, d)
+  return centre.at[1:1 + proposals].set(ranked)
+
+
+def top_proposals(proposals: Array, probs: Array, n: int) -> Array:
+  """(n, A, d) each agent's n most likely of its proposal latents (A, K, d), by probs (A, K)."""
+  order = jnp.argsort(-probs, axis=-1)[:, :n]                                   # (A, n)
+  return jnp.moveaxis(jnp.take_along_axis(proposals, order[..., None], axis=1), 1, 0)
 
 
 def select_sample(y0: Array, models: Models, cond: planner.Conditioning, batched, cfg: Config,
@@ -458,6 +498,10 @@ def validate(cfg: Config, policy: PolicyConfig) -> None:
     raise ValueError(f"select_stride must be in [1, select_lookahead], got {policy.select_stride}")
   if policy.select_map_weight < 0:
     raise ValueError(f"select_map_weight must be >= 0, got {policy.select_map_weight}")
+  most = min(policy.select_samples - 1, cfg.encoder.num_modes)
+  if not 0 <= policy.warm_proposals <= most:
+    raise ValueError(f"warm_proposals must be in [0, min(select_samples - 1, num_modes) = {most}], "
+                     f"got {policy.warm_proposals}")
   policy.guidance.validate()
 
 

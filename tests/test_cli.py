@@ -47,6 +47,9 @@ def test_rollout_cli_bad_arguments(tmp_path, capsys):
   with pytest.raises(SystemExit) as err:
     rollout.main(["--scenarios", "x", "--out", str(tmp_path), "--jerk-limit", "-1", "0"])
   assert err.value.code == 2 and "--jerk-limit" in capsys.readouterr().err
+  with pytest.raises(SystemExit) as err:
+    rollout.main(["--scenarios", "x", "--out", str(tmp_path), "--select-samples", "2", "--warm-proposals", "2"])
+  assert err.value.code == 2 and "--warm-proposals must be in [0, --select-samples - 1]" in capsys.readouterr().err
   assert rollout.main(["--scenarios", str(tmp_path / "missing.tfrecord"), "--out", str(tmp_path / "o")]) == 2
   assert "missing.tfrecord" in capsys.readouterr().err
 

@@ -337,3 +337,33 @@ def test_sample_selection_keeps_the_least_colliding_joint_plan(models):
     policy.actor(CFG, policy.PolicyConfig(select_samples=0))
   with pytest.raises(ValueError, match="select_stride"):
     policy.actor(CFG, policy.PolicyConfig(select_stride=31))
+
+
+def test_warm_proposals_start_samples_from_the_most_likely_proposals(models):
+  a, k, d = 3, 4, 2
+  proposals = jnp.arange(a * k * d, dtype=jnp.float32).reshape(1, a, k, d)
+  probs = jnp.array([[[0.1, 0.6, 0.2, 0.1], [0.4, 0.1, 0.2, 0.3], [0.25, 0.25, 0.3, 0.2]]])
+  s = 4
+  cond = planner.Conditioning(inputs=None, mu=jnp.full((s, a, d), -1.0), sigma=jnp.ones((s, a, d)),
+                              speed=jnp.zeros((s, a)), proposals=jnp.repeat(proposals, s, 0),
+                              probs=jnp.repeat(probs, s, 0))
+  previous = jnp.full((1, a, d), 7.0)
+  has = jnp.array([True, True, False])
+  out = np.asarray(policy.warm_centres(cond, previous, has, 2))
+  assert out.shape == (s, a, d)
+  np.testing.assert_array_equal(out[[0, 3], :2], 7.0)             # samples 0 and 3 continue the plan
+  np.testing.assert_array_equal(out[[0, 3], 2], -1.0)             # or start at the prior centre
+  props = np.asarray(proposals[0])
+  np.testing.assert_array_equal(out[1], props[[0, 1, 2], [1, 0, 2]])   # each agent's most likely
+  np.testing.assert_array_equal(out[2], props[[0, 1, 2], [2, 3, 0]])   # and its second (first on ties)
+  np.testing.assert_array_equal(np.asarray(policy.warm_centres(cond, previous, has, 0))[1:], out[[0, 0, 0]])
+  # In closed loop: one program, finite plans; more alternatives than samples is refused.
+  state = env.reset(make_scene(num_steps=91))
+  pcfg = policy.PolicyConfig(select_samples=3, ddim_steps=1, warm_proposals=2, select_map_weight=0.0)
+  act = policy.actor(CFG, pcfg)
+  select = jax.jit(act.select_action)
+  first = select(models, state, act.init(jax.random.key(0), state), jax.random.key(1))
+  second = select(models, env.step(state, first.action, first.is_controlled), first.actor_state, jax.random.key(2))
+  assert select._cache_size() == 1 and bool(jnp.all(jnp.isfinite(second.action.data)))
+  with pytest.raises(ValueError, match="warm_proposals"):
+    policy.actor(CFG, policy.PolicyConfig(select_samples=3, warm_proposals=3))
