@@ -60,8 +60,9 @@ class EvalConfig:
   the road least (`PolicyConfig.select_map_weight`), scored at every
   select_stride-th step (`PolicyConfig.select_stride`); jerk_limit: their
   executed acceleration's rate limit (`PolicyConfig.jerk_limit`); warm_proposals:
-  their warm samples that start from proposals (`PolicyConfig.warm_proposals`). simpl_ar_sample: SIMPL-AR draws its modes by their
-  probabilities instead of taking the top mode.
+  their warm samples that start from proposals (`PolicyConfig.warm_proposals`).
+  simpl_ar_sample: SIMPL-AR draws its modes by their probabilities instead of
+  taking the top mode.
 
   The learned methods model up to `metrics.max_reactive_agents` + 1 agents
   (the SDC and every evaluated agent), whatever cap they were trained with,

@@ -86,7 +86,7 @@ class PolicyConfig:
   weight sqrt(abar_90) = 0.36 in the start of the chain (0.89 at step 30),
   so each replan re-draws most of the plan from the current scene while
   starting near the last one. On the first 50 val scenes (3 seeds, with the
-  jerk limit) collisions / off-road 3.25 / 1.50% -> 2.12 / 0.88% at realism
+  jerk limit) collisions / off-road 3.19 / 1.50% -> 2.12 / 0.88% at realism
   W1 0.41 -> 0.56 and minADE 2.44 -> 2.58 m, at no extra cost (the same one
   DDIM step); steps 50 / 70 / 80 / 99 did less (docs/RESULTS.md, "Session 13").
   The temporal ensemble's weight (below) then wins the realism back.
@@ -107,7 +107,7 @@ class PolicyConfig:
   (3 seeds) 0.3 / 0.5 / 0.7 gave 2.12 / 1.93 / 2.45% collisions, 0.88 /
   0.95 / 1.08% off-road at realism W1 0.56 / 0.48 / 0.34 and minADE 2.58 /
   2.44 / 2.33 m (0.8: 2.85 / 1.03 / 0.27 / 2.32, 2 seeds); 0.7 is better than
-  session 12's defaults (3.25 / 1.50 / 0.41 / 2.44) on every column.
+  session 12's defaults (3.19 / 1.50 / 0.41 / 2.44) on every column.
 
   select_samples: S > 1 draws S joint plans per replan (one batched chain)
   and keeps, per agent, the sample that collides least with the others'
