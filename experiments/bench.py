@@ -276,13 +276,18 @@ def bench_policy(path: str, preset: str, agent_counts: list[int], ddim_steps: li
   state = env.reset(womd.load(path)[0])
   with_agents = lambda a: dataclasses.replace(
       base, features=dataclasses.replace(base.features, max_agents=a))
+  def shown(name, row):   # each row as it comes: a long run cut short keeps what it measured
+    print(f"policy/{name}: {json.dumps(row)}", flush=True)
+    return row
+
   return {
       "preset": preset,
-      "parts_by_agents": [bench_replan_parts(state, with_agents(a), base.diffusion.ddim_steps, repeats)
-                          for a in agent_counts],
-      "parts_by_ddim_steps": [bench_replan_parts(state, base, n, repeats) for n in ddim_steps],
-      "replan_by_batch": bench_replan_batch(state, base, batch_sizes, repeats),
-      "fused_vs_loop": bench_fused_vs_loop(womd.load(path)[0], base, 80, max(1, repeats // 2)),
+      "parts_by_agents": [shown("agents", bench_replan_parts(state, with_agents(a), base.diffusion.ddim_steps,
+                                                             repeats)) for a in agent_counts],
+      "parts_by_ddim_steps": [shown("ddim_steps", bench_replan_parts(state, base, n, repeats))
+                              for n in ddim_steps],
+      "replan_by_batch": shown("batch", bench_replan_batch(state, base, batch_sizes, repeats)),
+      "fused_vs_loop": shown("fused", bench_fused_vs_loop(womd.load(path)[0], base, 80, max(1, repeats // 2))),
   }
 
 

@@ -1,7 +1,7 @@
 """On-policy recovery fine-tuning of a trained diffusion policy (CAT-K-style rounds).
 
-  python -m experiments.finetune --from checkpoints/pcdiff-cpu-v3 \\
-      --data 'data/synth10k/train-*' --workdir runs/v4 --rounds 2 --scenes 400 --steps 600
+  python -m experiments.finetune --from checkpoints/pcdiff-cpu-v8 --round-policy defaults \\
+      --data 'data/synth10k/train-*' --workdir runs/v9 --rounds 4 --scenes 256 --steps 600 --batch-size 32
 
 Each round rolls the current policy out in closed loop (10 Hz, warm-started,
 SDC on its log, as `experiments.rollout` evaluates it) on --scenes training
@@ -31,6 +31,10 @@ encoder's tokens and proposals, and WORKDIR/encoder is that encoder (v8):
 
   python -m experiments.finetune --from checkpoints/pcdiff-cpu-v7 --encoder-from checkpoints/pcdiff-cpu-v7 \
       --data 'data/synth20/train-*' --workdir runs/l4 --rounds 2 --scenes 300 --first-scene 5200 --steps 1000
+
+--round-policy chooses what the rounds roll out: v8 (the default) is what every
+round of v3-v8 rolled out, pinned; defaults is today's `PolicyConfig` with one
+sample (v9's four rounds, the first line above, on one GPU).
 """
 from __future__ import annotations
 
@@ -49,12 +53,19 @@ from experiments import _args
 from pcdiff_jax.data import womd
 
 
-def _round_policy():
-  """The policy every shipped model's rounds rolled out: session 10's defaults
-  with one sample (no selection: the on-policy states should show the model's
-  own drift, not the collision filter's fixes) and no jerk limit; pinned so
-  that later changes of the inference defaults leave `make train` as it was."""
+ROUND_POLICIES = ("v8", "defaults")
+
+
+def _round_policy(name: str = "v8"):
+  """The policy a round rolls out, with one sample (no selection: the
+  on-policy states should show the model's own drift, not the collision
+  filter's fixes). 'v8': what every round of v3-v8 rolled out (session 10's
+  defaults, no jerk limit), pinned so that later changes of the inference
+  defaults leave `make train` as it was. 'defaults': today's PolicyConfig."""
+  import dataclasses as dc
   from pcdiff_jax import policy
+  if name == "defaults":
+    return dc.replace(policy.PolicyConfig(), select_samples=1)
   return policy.PolicyConfig(select_samples=1, warm_step=30, warm_ddim_steps=2, select_stride=1,
                              temporal_ensemble=(0.3, 0.0), jerk_limit=(0.0, 0.0), warm_proposals=0)
 
@@ -74,6 +85,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="whose closed loop is rolled out and fine-tuned: pcdiff (the denoiser, and the "
                       "encoder with --encoder-steps) or simpl-ar (the SIMPL-AR baseline's own encoder only)")
   p.add_argument("--rounds", type=int, default=1)
+  p.add_argument("--round-policy", choices=ROUND_POLICIES, default="v8",
+                 help="the policy rounds roll out (one sample): v8's rounds' pinned settings (the default, "
+                      "`make train`) or today's inference defaults")
   p.add_argument("--scenes", type=int, default=400, help="training scenes rolled out per round")
   p.add_argument("--first-scene", type=int, default=0,
                  help="round r rolls out training scenes FIRST + r * SCENES on (skip the scenes "
@@ -272,7 +286,7 @@ def main(argv=None) -> int:
         on_policy, info = data_lib.read_examples(path)
       else:
         on_policy, info = closed_loop.collect(
-            models, run_cfg, _round_policy(), files, ocfg,
+            models, run_cfg, _round_policy(args.round_policy), files, ocfg,
             first=args.first_scene + r * args.scenes,
             count=args.scenes, batch_size=args.rollout_batch, seed=args.seed + r,
             progress=not args.no_progress, teacher=teacher, actor=actor)

@@ -50,6 +50,11 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="pcdiff --warm-start: the diffusion step the previous plan is noised to (of 100)")
   p.add_argument("--warm-ddim-steps", type=int, default=evaluation.EvalConfig.warm_ddim_steps,
                  help="pcdiff --warm-start: DDIM steps from --warm-step")
+  p.add_argument("--ensemble-brake-weight", type=float, default=evaluation.EvalConfig.ensemble_brake_weight,
+                 help="the temporal ensemble's acceleration weight where a new plan brakes harder than the "
+                      "previous one (default: the same as --temporal-ensemble's)")
+  p.add_argument("--ensemble-brake-margin", type=float, default=evaluation.EvalConfig.ensemble_brake_margin,
+                 help="m/s^2: --ensemble-brake-weight applies where the new plan brakes harder by more than this")
   p.add_argument("--warm-proposals", type=int, default=evaluation.EvalConfig.warm_proposals,
                  help="pcdiff --warm-start with --select-samples S > 1: samples 1..N of a warm replan "
                       "start from each agent's N most likely proposals instead of its previous plan "
@@ -123,6 +128,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.error("--warm-step must be in [0, 99]")
   if not all(0.0 <= m < 1.0 for m in args.temporal_ensemble):
     p.error("--temporal-ensemble weights must be in [0, 1)")
+  if args.ensemble_brake_weight is not None and not 0.0 <= args.ensemble_brake_weight < 1.0:
+    p.error("--ensemble-brake-weight must be in [0, 1)")
   if not all(j >= 0.0 for j in args.jerk_limit):
     p.error("--jerk-limit values must be >= 0 (m/s^3)")
   if not 1 <= args.warm_ddim_steps <= args.warm_step + 1:
@@ -161,6 +168,8 @@ def main(argv=None) -> int:
                               warm_step=args.warm_step, warm_ddim_steps=args.warm_ddim_steps,
                               temporal_ensemble=tuple(args.temporal_ensemble),
                               jerk_limit=tuple(args.jerk_limit), warm_proposals=args.warm_proposals,
+                              ensemble_brake_weight=args.ensemble_brake_weight,
+                              ensemble_brake_margin=args.ensemble_brake_margin,
                               simpl_ar_sample=args.simpl_ar_sample, select_samples=args.select_samples,
                               select_map_weight=args.select_map_weight, select_stride=args.select_stride,
                               metrics=MetricsConfig(max_reactive_agents=args.max_agents),

@@ -60,7 +60,9 @@ class EvalConfig:
   the road least (`PolicyConfig.select_map_weight`), scored at every
   select_stride-th step (`PolicyConfig.select_stride`); jerk_limit: their
   executed acceleration's rate limit (`PolicyConfig.jerk_limit`); warm_proposals:
-  their warm samples that start from proposals (`PolicyConfig.warm_proposals`).
+  their warm samples that start from proposals (`PolicyConfig.warm_proposals`);
+  ensemble_brake_weight / ensemble_brake_margin: the ensemble's weight where a
+  new plan brakes harder (`PolicyConfig.ensemble_brake_weight`).
   simpl_ar_sample: SIMPL-AR draws its modes by their probabilities instead of
   taking the top mode.
 
@@ -99,6 +101,8 @@ class EvalConfig:
   select_stride: int = 3
   jerk_limit: tuple[float, float] = (1.5, 5.0)
   warm_proposals: int = 0
+  ensemble_brake_weight: Optional[float] = None
+  ensemble_brake_margin: float = 0.0
 
   @property
   def adversarial_scores(self) -> bool:
@@ -149,7 +153,9 @@ def _method_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
                              select_samples=cfg.select_samples,
                              select_map_weight=cfg.select_map_weight,
                              select_stride=cfg.select_stride, jerk_limit=cfg.jerk_limit,
-                             warm_proposals=cfg.warm_proposals)
+                             warm_proposals=cfg.warm_proposals,
+                             ensemble_brake_weight=cfg.ensemble_brake_weight,
+                             ensemble_brake_margin=cfg.ensemble_brake_margin)
   return policy.actor(with_agent_cap(model_cfg, cfg.metrics), pcfg), models
 
 

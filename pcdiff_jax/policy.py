@@ -109,6 +109,13 @@ class PolicyConfig:
   2.44 / 2.33 m (0.8: 2.85 / 1.03 / 0.27 / 2.32, 2 seeds); 0.7 is better than
   session 12's defaults (3.19 / 1.50 / 0.41 / 2.44) on every column.
 
+  ensemble_brake_weight: None (the default) averages braking like any other
+  acceleration; a weight in [0, 1) is used instead of m_accel at the steps
+  where the new plan brakes harder than the previous one by more than
+  ensemble_brake_margin (m/s^2), so a heavy ensemble smooths speeding up
+  without delaying a stop. With no margin every small disagreement that slows
+  down passes and the others are averaged: the agents drive slower.
+
   select_samples: S > 1 draws S joint plans per replan (one batched chain)
   and keeps, per agent, the sample that collides least with the others'
   chosen samples over the first `select_lookahead` steps (iterated
@@ -174,6 +181,8 @@ class PolicyConfig:
   warm_step: int = 90
   warm_ddim_steps: int = 1
   temporal_ensemble: tuple[float, float] = (0.7, 0.0)
+  ensemble_brake_weight: Optional[float] = None
+  ensemble_brake_margin: float = 0.0
   select_samples: int = 4
   select_lookahead: int = 30
   select_map_weight: float = 30.0
@@ -404,16 +413,23 @@ def reactive_set(state: SimulatorState, cfg: Config) -> Array:
 
 
 def ensemble_plans(previous: Array, previous_valid: Array, executed: Array, plan: Array,
-                   plan_valid: Array, weight) -> Array:
+                   plan_valid: Array, weight, brake_weight: Optional[float] = None,
+                   brake_margin: float = 0.0) -> Array:
   """(O, T, 2) weight * previous + (1 - weight) * plan over the steps both
   cover, with `previous` advanced by the `executed` actions (a traced int);
   the new plan alone where the previous one has ended or an agent had none.
-  weight: () or one per action channel (2,)."""
+  weight: () or one per action channel (2,). brake_weight: the acceleration
+  channel's weight where the new plan's acceleration is below the previous
+  one's by more than brake_margin."""
   horizon = plan.shape[1]
   both = ((jnp.arange(horizon) < horizon - executed)[None, :, None]
           & (previous_valid & plan_valid)[:, None, None])
-  weight = jnp.asarray(weight, plan.dtype)
-  blended = weight * advance_plan(previous, executed) + (1.0 - weight) * plan
+  previous = advance_plan(previous, executed)
+  weight = jnp.broadcast_to(jnp.asarray(weight, plan.dtype), plan.shape)
+  if brake_weight is not None:
+    brakes = plan[..., 0] < previous[..., 0] - brake_margin
+    weight = weight.at[..., 0].set(jnp.where(brakes, jnp.asarray(brake_weight, plan.dtype), weight[..., 0]))
+  blended = weight * previous + (1.0 - weight) * plan
   return jnp.where(both, blended, plan)
 
 
@@ -443,7 +459,8 @@ def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
     plan, plan_valid, path = plan_actions(models, state, cfg, policy, rng, ps.adversary, noise, ps.road,
                                           controlled=ps.controlled, warm=warm)
     if any(policy.temporal_ensemble):
-      plan = ensemble_plans(ps.plan, ps.plan_valid, ps.age, plan, plan_valid, policy.temporal_ensemble)
+      plan = ensemble_plans(ps.plan, ps.plan_valid, ps.age, plan, plan_valid, policy.temporal_ensemble,
+                            policy.ensemble_brake_weight, policy.ensemble_brake_margin)
     return plan, plan_valid, path
 
   def select_action(models, state, ps: PlanState, rng):
@@ -485,6 +502,8 @@ def validate(cfg: Config, policy: PolicyConfig) -> None:
   if len(policy.temporal_ensemble) != 2 or not all(0.0 <= m < 1.0 for m in policy.temporal_ensemble):
     raise ValueError(f"temporal_ensemble must be two weights in [0, 1) (acceleration, yaw rate), "
                      f"got {policy.temporal_ensemble}")
+  if policy.ensemble_brake_weight is not None and not 0.0 <= policy.ensemble_brake_weight < 1.0:
+    raise ValueError(f"ensemble_brake_weight must be None or in [0, 1), got {policy.ensemble_brake_weight}")
   if not 1 <= policy.warm_ddim_steps <= policy.warm_step + 1:
     raise ValueError(f"warm_ddim_steps must be in [1, warm_step + 1 = {policy.warm_step + 1}], "
                      f"got {policy.warm_ddim_steps}")

@@ -227,6 +227,19 @@ def test_temporal_ensemble_averages_the_plans_made_for_each_step(models):
   np.testing.assert_allclose(out[0, :3], [[0.75, 0.25]] * 3)     # the steps both plans cover, per channel
   np.testing.assert_array_equal(out[0, 3:], 0.0)                 # past the previous plan's end
   np.testing.assert_array_equal(out[1:], 0.0)                    # no new plan / no previous plan
+  # ensemble_brake_weight: where the new plan brakes harder its own weight holds (acceleration only).
+  new_b = jnp.zeros((3, 5, 2)).at[0, :, 0].set(jnp.array([2.0, 2.0, 0.0, 0.0, 0.0]))
+  ens = jax.jit(policy.ensemble_plans, static_argnums=6)
+  out = np.asarray(ens(previous, had, jnp.int32(2), new_b, jnp.array([True, False, True]),
+                       jnp.array([0.75, 0.25]), 0.1))
+  np.testing.assert_allclose(out[0, :3, 0], [0.75 + 0.25 * 2.0, 0.75 + 0.25 * 2.0, 0.1])
+  np.testing.assert_allclose(out[0, :3, 1], 0.25)
+  ens_m = jax.jit(policy.ensemble_plans, static_argnums=(6, 7))        # braking by less than the margin is averaged
+  out = np.asarray(ens_m(previous, had, jnp.int32(2), new_b, jnp.array([True, False, True]),
+                         jnp.array([0.75, 0.25]), 0.1, 1.5))
+  np.testing.assert_allclose(out[0, :3, 0], [0.75 + 0.25 * 2.0, 0.75 + 0.25 * 2.0, 0.75])
+  with pytest.raises(ValueError, match="ensemble_brake_weight"):
+    policy.actor(CFG, policy.PolicyConfig(ensemble_brake_weight=1.0))
   # In closed loop: the executed action is the ensemble's, replanning every step.
   state = env.reset(make_scene(num_steps=91))
   pcfg = policy.PolicyConfig(select_samples=1, ddim_steps=2, temporal_ensemble=(0.5, 0.5), jerk_limit=(0.0, 0.0))

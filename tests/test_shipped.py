@@ -71,3 +71,19 @@ def test_shipped_simpl_ar_baseline_has_a_lane_aware_encoder(model, real_state):
   ok = np.asarray(feats.agent_valid) & np.asarray(real_state.log_trajectory.valid)[obj, t]
   assert ok.sum() > 20
   assert float(np.median(np.linalg.norm(at_1s - log, axis=-1)[ok])) < 2.0
+
+
+def test_every_model_folder_with_weights_has_a_card_and_loads_by_name(model):
+  """checkpoints/*: a folder with weights loads by name and has its card; v9 (four GPU rounds on
+  v8, not the default) shares v8's encoder, latent and architecture."""
+  root = os.path.dirname(shipped.checkpoint_dir())
+  names = sorted(n for n in os.listdir(root) if os.path.isdir(os.path.join(root, n, "diffusion")))
+  assert shipped.DEFAULT_NAME in names and "pcdiff-cpu-v9" in names
+  for name in names:
+    assert os.path.exists(os.path.join(root, name, "MODEL_CARD.md")), name
+  v8, cfg8 = model
+  v9, cfg9 = pcdiff_jax.pretrained("pcdiff-cpu-v9")
+  assert (cfg9.encoder, cfg9.diffusion, cfg9.features) == (cfg8.encoder, cfg8.diffusion, cfg8.features)
+  for part in ("encoder", "stats"):
+    for a, b in zip(jax.tree_util.tree_leaves(getattr(v9, part)), jax.tree_util.tree_leaves(getattr(v8, part))):
+      np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -4,6 +4,7 @@ both stages and the export, an on-policy fine-tuning round, and the main job
 (`make demo`) end to end with its diagnostics."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 
@@ -111,14 +112,18 @@ def test_finetune_round_moves_both_stages_and_keeps_the_latent(tiny_trained, wom
   model (both stages, so SIMPL-AR takes it too)."""
   import pcdiff_jax
   from experiments import finetune
+  from pcdiff_jax import policy
   from pcdiff_jax.training import diffusion_stage
   models, cfg = pcdiff_jax.pretrained(path=tiny_trained["shipped"])
   ft = str(tmp_path / "ft")
   argv = ["--from", tiny_trained["shipped"], "--data", womd_path, "--workdir", ft,
           "--cache-dir", os.path.join(tiny_trained["work"], "cache"),
           "--scenes", "1", "--steps", "2", "--encoder-steps", "1", "--times", "12", "13", "--max-agents", "8",
-          "--batch-size", "2", "--no-progress"]
+          "--batch-size", "2", "--round-policy", "defaults", "--no-progress"]
   assert finetune.main(argv) == 0
+  # Today's inference defaults with one sample; "v8" (the default) pins what v3-v8's rounds rolled out.
+  assert finetune._round_policy("defaults") == dataclasses.replace(policy.PolicyConfig(), select_samples=1)
+  assert (finetune._round_policy("v8").warm_step, finetune._round_policy("v8").temporal_ensemble) == (30, (0.3, 0.0))
   tuned, tuned_cfg = diffusion_stage.load(ft)
   assert tuned_cfg.diffusion == cfg.diffusion and tuned_cfg.encoder == cfg.encoder
   for a, b in zip(jax.tree_util.tree_leaves(tuned.stats), jax.tree_util.tree_leaves(models.stats)):

@@ -188,7 +188,14 @@ def test_too_many_objects(womd_path):
     list(womd.iterate(womd_path, max_num_objects=50))
 
 
-def test_truncated_and_corrupt_files(real_state, tmp_path):
+@pytest.fixture(params=["tf", "python"])
+def record_io(request, monkeypatch):
+  """Runs a test with TensorFlow's TFRecord reader/writer and with ours (`tfrecord`)."""
+  monkeypatch.setenv(womd.RECORD_IO_ENV, request.param)
+  return request.param
+
+
+def test_truncated_and_corrupt_files(real_state, tmp_path, record_io):
   good = tmp_path / "good.tfrecord"
   womd.write(str(good), [(real_state, "a"), (real_state, "b")])
   data = good.read_bytes()
@@ -208,7 +215,7 @@ def test_truncated_and_corrupt_files(real_state, tmp_path):
   assert [m.scenario_id for _, m in ok] == ["a"] and len(skipped) == 1
 
 
-def test_not_an_example_and_skip_mode(real_state, tmp_path, caplog):
+def test_not_an_example_and_skip_mode(real_state, tmp_path, caplog, record_io):
   path = tmp_path / "mixed.tfrecord"
   good = womd.state_to_example(real_state, "good").SerializeToString()
   _write_raw(path, [good, b"\x00garbage\xff" * 10, _example_with(real_state, lambda f: f.pop("state/id")), good])

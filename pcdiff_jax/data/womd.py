@@ -137,6 +137,22 @@ def quiet_tensorflow_env() -> None:
   os.environ.setdefault("TF_ENABLE_ONEDNN_OPTS", "0")
 
 
+RECORD_IO_ENV = "PCDIFF_RECORD_IO"
+
+
+def record_io() -> str:
+  """'tf' or 'python': who reads and writes TFRecords. `PCDIFF_RECORD_IO`
+  ('tf', 'python' or 'auto', the default) chooses; 'auto' takes TensorFlow
+  when it is installed, else the TensorFlow-free `tfrecord` module (same bytes)."""
+  choice = os.environ.get(RECORD_IO_ENV, "auto")
+  if choice not in ("auto", "tf", "python"):
+    raise ValueError(f"{RECORD_IO_ENV} must be 'auto', 'tf' or 'python', got {choice!r}")
+  if choice == "auto":
+    import importlib.util
+    return "tf" if importlib.util.find_spec("tensorflow") is not None else "python"
+  return choice
+
+
 def _tf():
   quiet_tensorflow_env()
   import tensorflow as tf  # imported lazily: only the loader/writer needs TF
@@ -157,6 +173,8 @@ def _parse_raw(raw: Sequence[bytes], path: str, first_index: int) -> list:
   A record that is not a tf.train.Example comes back as a WomdFormatError in
   its place, so one bad record never takes its neighbours with it.
   """
+  if record_io() == "python":
+    return [_parse_one_python(r, path, first_index + i) for i, r in enumerate(raw)]
   tf = _tf()
   spec = _ragged_spec()
   try:
@@ -172,6 +190,14 @@ def _parse_raw(raw: Sequence[bytes], path: str, first_index: int) -> list:
   flat = {k: (v.flat_values.numpy(), v.row_splits.numpy()) for k, v in parsed.items()}
   return [{k: values[splits[i]:splits[i + 1]] for k, (values, splits) in flat.items()}
           for i in range(len(raw))]
+
+
+def _parse_one_python(raw: bytes, path: str, index: int):
+  from pcdiff_jax.data import tfrecord
+  try:
+    return tfrecord.parse_example(raw, {k: feature_kind(k) for k in all_keys()})
+  except Exception:  # DecodeError, or a feature stored with another list type
+    return WomdFormatError(path, index, None, "not a tf.train.Example in the WOMD schema (could not parse it)")
 
 
 def _check_length(ex: dict, key: str, expected: int, path: str, index: int) -> np.ndarray:
@@ -383,6 +409,9 @@ def numpy_to_state(arrays: dict, to_jax: bool = True) -> SimulatorState:
 
 def _records(path: str, chunk: int) -> Iterator[tuple[int, list[bytes]]]:
   """(first index, raw records) chunks of a TFRecord file, via tf.data."""
+  if record_io() == "python":
+    yield from _records_python(path, chunk)
+    return
   tf = _tf()
   dataset = tf.data.TFRecordDataset(path).batch(chunk)
   index = 0
@@ -417,18 +446,32 @@ def _records_one_by_one(path: str, start: int, err) -> Iterator[tuple[int, list[
     index += 1
 
 
+def _records_python(path: str, chunk: int) -> Iterator[tuple[int, list[bytes]]]:
+  from pcdiff_jax.data import tfrecord
+  index, raw = 0, []
+  try:
+    for record in tfrecord.read_records(path):
+      raw.append(record)
+      if len(raw) == chunk:
+        yield index, raw
+        index, raw = index + len(raw), []
+  except tfrecord.RecordError as err:
+    if raw:
+      yield index, raw
+    raise WomdFormatError(path, err.index, None, f"corrupted or truncated TFRecord ({err})") from None
+  if raw:
+    yield index, raw
+
+
 RECORD_FORMATS = ("auto", "tf_example", "scenario")
 
 
 def detect_format(raw: bytes, path: str = "<bytes>", index: int = 0) -> str:
   """'tf_example' or 'scenario': the WOMD flavour of one serialized record."""
-  tf = _tf()
-  try:
-    example = tf.train.Example.FromString(raw)
-    if any(k == "scenario/id" or k.startswith("state/") for k in example.features.feature):
-      return "tf_example"
-  except Exception:  # not an Example: try a Scenario
-    pass
+  from pcdiff_jax.data import tfrecord
+  keys = tfrecord.is_example(raw) or []
+  if any(k == "scenario/id" or k.startswith("state/") for k in keys):
+    return "tf_example"
   from pcdiff_jax.data import scenario_proto
   if scenario_proto.is_scenario(raw):
     return "scenario"
@@ -581,7 +624,6 @@ def state_to_example(state: SimulatorState, scenario_id: str, trajectory: str = 
     trajectory: 'log' writes the log trajectory; 'sim' writes the simulated one
       (e.g. to save closed-loop rollouts as WOMD records).
   """
-  tf = _tf()
   if state.shape:
     raise ValueError(f"state_to_example takes one scenario, got batch dims {state.shape}")
   traj = state.log_trajectory if trajectory == "log" else state.sim_trajectory
@@ -622,17 +664,11 @@ def state_to_example(state: SimulatorState, scenario_id: str, trajectory: str = 
   for key, part in _split_time(ts[None], num_past).items():
     feats[f"traffic_light_state/{key}/timestamp_micros"] = part[0]
 
-  def to_feature(key, value):
-    kind = feature_kind(key)
-    flat = np.asarray(value).reshape(-1)
-    # Lists, not arrays: protobuf copies a list ~10x faster than it iterates an array.
-    if kind == "float":
-      return tf.train.Feature(float_list=tf.train.FloatList(value=flat.astype(np.float32).tolist()))
-    return tf.train.Feature(int64_list=tf.train.Int64List(value=flat.astype(np.int64).tolist()))
-
-  feature = {k: to_feature(k, v) for k, v in feats.items()}
-  feature["scenario/id"] = tf.train.Feature(bytes_list=tf.train.BytesList(value=[scenario_id.encode()]))
-  return tf.train.Example(features=tf.train.Features(feature=feature))
+  from pcdiff_jax.data import tfrecord
+  features = {k: (feature_kind(k), np.asarray(v).reshape(-1)) for k, v in feats.items()}
+  features["scenario/id"] = ("bytes", [scenario_id.encode()])
+  # The private-pool Example: its bytes are tf.train.Example's (`tfrecord`).
+  return tfrecord.make_example(features)
 
 
 def write(path: str, items: Iterable[tuple[SimulatorState, str]], trajectory: str = "log",
@@ -644,7 +680,6 @@ def write(path: str, items: Iterable[tuple[SimulatorState, str]], trajectory: st
   Writes to `path + '.tmp'` and renames at the end, so an interrupted write
   never leaves a truncated file under the final name.
   """
-  tf = _tf()
   if record_format not in ("tf_example", "scenario"):
     raise ValueError(f"record_format must be 'tf_example' or 'scenario', got {record_format!r}")
   if record_format == "scenario":
@@ -653,9 +688,17 @@ def write(path: str, items: Iterable[tuple[SimulatorState, str]], trajectory: st
     encode = state_to_example
   tmp = f"{path}.tmp"
   count = 0
-  with tf.io.TFRecordWriter(tmp) as writer:
-    for state, scenario_id in items:
-      writer.write(encode(state, scenario_id, trajectory=trajectory).SerializeToString(deterministic=True))
-      count += 1
+  if record_io() == "python":
+    from pcdiff_jax.data import tfrecord
+    with open(tmp, "wb") as f:
+      for state, scenario_id in items:
+        tfrecord.write_record(f, encode(state, scenario_id, trajectory=trajectory).SerializeToString(
+            deterministic=True))
+        count += 1
+  else:
+    with _tf().io.TFRecordWriter(tmp) as writer:
+      for state, scenario_id in items:
+        writer.write(encode(state, scenario_id, trajectory=trajectory).SerializeToString(deterministic=True))
+        count += 1
   os.replace(tmp, path)
   return count

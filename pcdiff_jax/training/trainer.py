@@ -140,10 +140,12 @@ def _with_defaults(saved: dict) -> dict:
 
 class _DropReadOnlyNotice(logging.Filter):
   """orbax warns "Given directory is read only" each time a model is loaded
-  read-only, which is what loading is: that one message only, not a warning."""
+  read-only, which is what loading is, and "Metadata file does not exist" when
+  a step's metadata is read: those messages only, not warnings."""
 
   def filter(self, record: logging.LogRecord) -> bool:
-    return not str(record.msg).startswith("Given directory is read only")
+    msg = str(record.msg)
+    return not (msg.startswith("Given directory is read only") or msg.startswith("Metadata file does not exist"))
 
 
 class Checkpointer:
@@ -206,8 +208,29 @@ class Checkpointer:
     step = self.latest_step() if step is None else step
     if step is None:
       raise FileNotFoundError(f"no checkpoint in {self.directory}")
-    out = self.manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore()))
+    out = self.manager.restore(step, args=ocp.args.Composite(
+        state=ocp.args.StandardRestore(self._abstract_on_this_device(step))))
     return out["state"]
+
+  def _abstract_on_this_device(self, step: int) -> Any:
+    """The saved tree's shapes and dtypes on this process's first device.
+    Without a target orbax restores each array onto the device it was saved
+    from, which fails across machines ("Topology mismatch": a model saved on a
+    CPU, read on a GPU)."""
+    path = os.path.join(self.directory, str(step), "state")
+    quiet = _DropReadOnlyNotice()
+    logging.getLogger("absl").addFilter(quiet)
+    try:
+      with ocp.StandardCheckpointer() as reader:
+        meta = reader.metadata(path)
+    finally:
+      logging.getLogger("absl").removeFilter(quiet)
+    tree = getattr(meta, "item_metadata", meta)
+    tree = getattr(tree, "tree", tree)
+    device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+    return jax.tree_util.tree_map(
+        lambda m: jax.ShapeDtypeStruct(m.shape, m.dtype, sharding=device) if hasattr(m, "shape") else m,
+        tree)
 
   def restore_or_keep(self, state: TrainState, config: dict,
                       compare: Optional[tuple[str, ...]] = None) -> TrainState:
