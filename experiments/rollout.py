@@ -55,6 +55,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                       "previous one (default: the same as --temporal-ensemble's)")
   p.add_argument("--ensemble-brake-margin", type=float, default=evaluation.EvalConfig.ensemble_brake_margin,
                  help="m/s^2: --ensemble-brake-weight applies where the new plan brakes harder by more than this")
+  p.add_argument("--ensemble-pass", choices=("brake", "both"), default=evaluation.EvalConfig.ensemble_pass,
+                 help="which disagreements over the margin take --ensemble-brake-weight: braking only, or either way")
   p.add_argument("--warm-proposals", type=int, default=evaluation.EvalConfig.warm_proposals,
                  help="pcdiff --warm-start with --select-samples S > 1: samples 1..N of a warm replan "
                       "start from each agent's N most likely proposals instead of its previous plan "
@@ -170,6 +172,7 @@ def main(argv=None) -> int:
                               jerk_limit=tuple(args.jerk_limit), warm_proposals=args.warm_proposals,
                               ensemble_brake_weight=args.ensemble_brake_weight,
                               ensemble_brake_margin=args.ensemble_brake_margin,
+                              ensemble_pass=args.ensemble_pass,
                               simpl_ar_sample=args.simpl_ar_sample, select_samples=args.select_samples,
                               select_map_weight=args.select_map_weight, select_stride=args.select_stride,
                               metrics=MetricsConfig(max_reactive_agents=args.max_agents),

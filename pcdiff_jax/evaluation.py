@@ -61,8 +61,9 @@ class EvalConfig:
   select_stride-th step (`PolicyConfig.select_stride`); jerk_limit: their
   executed acceleration's rate limit (`PolicyConfig.jerk_limit`); warm_proposals:
   their warm samples that start from proposals (`PolicyConfig.warm_proposals`);
-  ensemble_brake_weight / ensemble_brake_margin: the ensemble's weight where a
-  new plan brakes harder (`PolicyConfig.ensemble_brake_weight`).
+  ensemble_brake_weight / ensemble_brake_margin / ensemble_pass: the ensemble's
+  weight where a new plan brakes harder (or differs more: "both";
+  `PolicyConfig.ensemble_brake_weight`).
   simpl_ar_sample: SIMPL-AR draws its modes by their probabilities instead of
   taking the top mode.
 
@@ -103,6 +104,7 @@ class EvalConfig:
   warm_proposals: int = 0
   ensemble_brake_weight: Optional[float] = None
   ensemble_brake_margin: float = 0.0
+  ensemble_pass: str = "brake"
 
   @property
   def adversarial_scores(self) -> bool:
@@ -155,7 +157,8 @@ def _method_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
                              select_stride=cfg.select_stride, jerk_limit=cfg.jerk_limit,
                              warm_proposals=cfg.warm_proposals,
                              ensemble_brake_weight=cfg.ensemble_brake_weight,
-                             ensemble_brake_margin=cfg.ensemble_brake_margin)
+                             ensemble_brake_margin=cfg.ensemble_brake_margin,
+                             ensemble_pass=cfg.ensemble_pass)
   return policy.actor(with_agent_cap(model_cfg, cfg.metrics), pcfg), models
 
 

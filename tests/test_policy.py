@@ -238,6 +238,12 @@ def test_temporal_ensemble_averages_the_plans_made_for_each_step(models):
   out = np.asarray(ens_m(previous, had, jnp.int32(2), new_b, jnp.array([True, False, True]),
                          jnp.array([0.75, 0.25]), 0.1, 1.5))
   np.testing.assert_allclose(out[0, :3, 0], [0.75 + 0.25 * 2.0, 0.75 + 0.25 * 2.0, 0.75])
+  ens_b = jax.jit(policy.ensemble_plans, static_argnums=(6, 7, 8))      # "both": a big rise passes too
+  out = np.asarray(ens_b(previous, had, jnp.int32(2), new_b, jnp.array([True, False, True]),
+                         jnp.array([0.75, 0.25]), 0.1, 0.5, True))
+  np.testing.assert_allclose(out[0, :3, 0], [0.1 + 0.9 * 2.0, 0.1 + 0.9 * 2.0, 0.1])
+  with pytest.raises(ValueError, match="ensemble_pass"):
+    policy.actor(CFG, policy.PolicyConfig(ensemble_pass="up"))
   with pytest.raises(ValueError, match="ensemble_brake_weight"):
     policy.actor(CFG, policy.PolicyConfig(ensemble_brake_weight=1.0))
   # In closed loop: the executed action is the ensemble's, replanning every step.
