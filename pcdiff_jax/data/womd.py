@@ -19,6 +19,7 @@ record (`record_format="auto"`) or forced with `record_format`.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import glob as globlib
 import itertools
 import logging
@@ -192,10 +193,15 @@ def _parse_raw(raw: Sequence[bytes], path: str, first_index: int) -> list:
           for i in range(len(raw))]
 
 
+@functools.lru_cache(maxsize=1)
+def _feature_kinds() -> dict[str, str]:
+  return {k: feature_kind(k) for k in all_keys()}
+
+
 def _parse_one_python(raw: bytes, path: str, index: int):
   from pcdiff_jax.data import tfrecord
   try:
-    return tfrecord.parse_example(raw, {k: feature_kind(k) for k in all_keys()})
+    return tfrecord.parse_example(raw, _feature_kinds())
   except Exception:  # DecodeError, or a feature stored with another list type
     return WomdFormatError(path, index, None, "not a tf.train.Example in the WOMD schema (could not parse it)")
 
@@ -408,7 +414,7 @@ def numpy_to_state(arrays: dict, to_jax: bool = True) -> SimulatorState:
 
 
 def _records(path: str, chunk: int) -> Iterator[tuple[int, list[bytes]]]:
-  """(first index, raw records) chunks of a TFRecord file, via tf.data."""
+  """(first index, raw records) chunks of a TFRecord file, via tf.data (or `tfrecord`)."""
   if record_io() == "python":
     yield from _records_python(path, chunk)
     return

@@ -148,6 +148,16 @@ class _DropReadOnlyNotice(logging.Filter):
     return not (msg.startswith("Given directory is read only") or msg.startswith("Metadata file does not exist"))
 
 
+@contextlib.contextmanager
+def _quiet_orbax_notices():
+  quiet = _DropReadOnlyNotice()
+  logging.getLogger("absl").addFilter(quiet)
+  try:
+    yield
+  finally:
+    logging.getLogger("absl").removeFilter(quiet)
+
+
 class Checkpointer:
   """orbax CheckpointManager holding {state, config} under WORKDIR/checkpoints."""
 
@@ -155,16 +165,12 @@ class Checkpointer:
     self.directory = os.path.abspath(os.path.join(workdir, "checkpoints"))
     if read_only and not os.path.isdir(self.directory):
       raise FileNotFoundError(f"no checkpoint in {self.directory}")
-    quiet = _DropReadOnlyNotice()
-    logging.getLogger("absl").addFilter(quiet)
-    try:
+    with _quiet_orbax_notices():
       self.manager = ocp.CheckpointManager(
           self.directory, item_names=("state", "config"),
           options=ocp.CheckpointManagerOptions(
               max_to_keep=None if read_only else keep, save_interval_steps=0 if read_only else 1,
               create=not read_only, read_only=read_only, enable_async_checkpointing=False))
-    finally:
-      logging.getLogger("absl").removeFilter(quiet)
 
   def latest_step(self) -> Optional[int]:
     return self.manager.latest_step()
@@ -218,13 +224,8 @@ class Checkpointer:
     from, which fails across machines ("Topology mismatch": a model saved on a
     CPU, read on a GPU)."""
     path = os.path.join(self.directory, str(step), "state")
-    quiet = _DropReadOnlyNotice()
-    logging.getLogger("absl").addFilter(quiet)
-    try:
-      with ocp.StandardCheckpointer() as reader:
-        meta = reader.metadata(path)
-    finally:
-      logging.getLogger("absl").removeFilter(quiet)
+    with _quiet_orbax_notices(), ocp.StandardCheckpointer() as reader:
+      meta = reader.metadata(path)
     tree = getattr(meta, "item_metadata", meta)
     tree = getattr(tree, "tree", tree)
     device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
