@@ -34,9 +34,16 @@ def real_state(womd_path):
 
 
 @pytest.fixture(scope="session")
-def raw_example(womd_path):
+def tensorflow():
+  """TensorFlow, the independent reference of the record tests; they skip without it (it is the
+  optional `tf` extra; `make install` has it)."""
+  return pytest.importorskip("tensorflow", reason="TensorFlow (the `tf` extra) is the independent reference here")
+
+
+@pytest.fixture(scope="session")
+def raw_example(womd_path, tensorflow):
   """The real record parsed independently of our loader: {key: np.ndarray}."""
-  import tensorflow as tf
+  tf = tensorflow
   raw = next(iter(tf.data.TFRecordDataset(womd_path))).numpy()
   ex = tf.train.Example.FromString(raw)
   out = {}

@@ -24,21 +24,20 @@ def scenes():
   return {f: [generate_scene(7, i, _only(f)) for i in range(2)] for f in FAMILIES}
 
 
-def _raw(path):
-  import tensorflow as tf
+def _raw(tf, path):
   raw = next(iter(tf.data.TFRecordDataset(path))).numpy()
   ex = tf.train.Example.FromString(raw)
   return {k: (f.WhichOneof("kind"), len(getattr(f, f.WhichOneof("kind")).value))
           for k, f in ex.features.feature.items()}
 
 
-def test_schema_parity_with_real_record(womd_path, scenes, tmp_path):
+def test_schema_parity_with_real_record(womd_path, scenes, tmp_path, tensorflow):
   """Same feature keys, kinds (dtypes) and lengths as the real WOMD record."""
-  real = _raw(womd_path)
+  real = _raw(tensorflow, womd_path)
   for family, (scene, _) in scenes.items():
     path = str(tmp_path / f"{family}.tfrecord")
     womd.write(path, [(scene.state, scene.scenario_id)])
-    ours = _raw(path)
+    ours = _raw(tensorflow, path)
     assert set(ours) == set(real), (family, set(ours) ^ set(real))
     diff = {k: (ours[k], real[k]) for k in real if ours[k] != real[k]}
     assert not diff, (family, diff)

@@ -27,7 +27,7 @@ def test_record_io_choice(monkeypatch):
     womd.record_io()
 
 
-def test_real_record_parses_as_with_tensorflow(womd_path, monkeypatch):
+def test_real_record_parses_as_with_tensorflow(womd_path, monkeypatch, tensorflow):
   kinds = {k: womd.feature_kind(k) for k in womd.all_keys()}
   raw = next(tfrecord.read_records(womd_path))
   ours = tfrecord.parse_example(raw, kinds)
@@ -45,7 +45,7 @@ def test_real_record_parses_as_with_tensorflow(womd_path, monkeypatch):
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
-def test_writers_give_the_same_bytes(real_state, tmp_path, monkeypatch):
+def test_writers_give_the_same_bytes(real_state, tmp_path, monkeypatch, tensorflow):
   items = [(real_state, "a3bb37c25ce56418"), (real_state, "second")]
   files = {}
   for io in ("tf", "python"):
@@ -54,8 +54,7 @@ def test_writers_give_the_same_bytes(real_state, tmp_path, monkeypatch):
     assert womd.write(str(files[io]), items) == 2
   assert files["tf"].read_bytes() == files["python"].read_bytes()
   # TensorFlow's reader takes our file; ours reads it back record by record.
-  import tensorflow as tf
-  assert len(list(tf.data.TFRecordDataset(str(files["python"])))) == 2
+  assert len(list(tensorflow.data.TFRecordDataset(str(files["python"])))) == 2
   assert len(list(tfrecord.read_records(str(files["python"])))) == 2
   assert len(list(tfrecord.read_records(str(files["python"]), start=1))) == 1
 

@@ -5,6 +5,7 @@ both stages and the export, an on-policy fine-tuning round, and the main job
 from __future__ import annotations
 
 import dataclasses
+import glob
 import json
 import os
 
@@ -54,10 +55,13 @@ def test_train_cli_resumes_logs_and_guards_its_workdir(tiny_trained, womd_path, 
   lines = [json.loads(l) for l in open(os.path.join(work, "encoder", "metrics.jsonl"))]
   assert [d["step"] for d in lines if "train/loss" in d] == [1, 2, 3, 4]   # resumed at 2: no step repeated
   assert any("val/min_fde" in d for d in lines)
-  # TensorBoard event files hold the same scalars, tagged for its scalars plugin.
-  import glob
-
-  import tensorflow as tf
+  # Another model in the same workdir is refused with the differing fields named.
+  assert _train(["--stage", "encoder", "--config", "cpu", "--data", womd_path, "--workdir", work,
+                 "--no-progress", "--steps", "1"]) == 2
+  assert "encoder.d_model" in capsys.readouterr().err
+  # Last, as it skips without TensorFlow: TensorBoard event files hold the same scalars, tagged
+  # for its scalars plugin.
+  tf = pytest.importorskip("tensorflow", reason="TensorBoard event files are written only with TensorFlow (the `tf` extra)")
   from tensorflow.core.util import event_pb2
   tags = set()
   for f in glob.glob(os.path.join(work, "encoder", "tb", "*")):
@@ -65,10 +69,6 @@ def test_train_cli_resumes_logs_and_guards_its_workdir(tiny_trained, womd_path, 
       for v in event_pb2.Event.FromString(rec.numpy()).summary.value:
         tags.add((v.tag, v.metadata.plugin_data.plugin_name))
   assert ("train/loss", "scalars") in tags and ("val/min_fde", "scalars") in tags
-  # Another model in the same workdir is refused with the differing fields named.
-  assert _train(["--stage", "encoder", "--config", "cpu", "--data", womd_path, "--workdir", work,
-                 "--no-progress", "--steps", "1"]) == 2
-  assert "encoder.d_model" in capsys.readouterr().err
 
 
 def test_both_stages_sample_and_export_as_a_shipped_model(tiny_trained, womd_path, tmp_path, capsys):

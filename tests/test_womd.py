@@ -7,7 +7,7 @@ import jax
 import numpy as np
 import pytest
 
-from pcdiff_jax.data import womd
+from pcdiff_jax.data import tfrecord, womd
 
 NUM_OBJ, T = 128, 91
 
@@ -158,10 +158,9 @@ def _example_with(real_state, edit):
 
 
 def _write_raw(path, records):
-  import tensorflow as tf
-  with tf.io.TFRecordWriter(str(path)) as w:
+  with open(path, "wb") as f:   # TensorFlow's framing (tests/test_tfrecord.py), no TensorFlow needed
     for r in records:
-      w.write(r)
+      tfrecord.write_record(f, r)
 
 
 @pytest.mark.parametrize("edit, field, message", [
@@ -191,6 +190,8 @@ def test_too_many_objects(womd_path):
 @pytest.fixture(params=["tf", "python"])
 def record_io(request, monkeypatch):
   """Runs a test with TensorFlow's TFRecord reader/writer and with ours (`tfrecord`)."""
+  if request.param == "tf":
+    request.getfixturevalue("tensorflow")   # skips without TensorFlow
   monkeypatch.setenv(womd.RECORD_IO_ENV, request.param)
   return request.param
 
