@@ -78,6 +78,16 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--select-stride", type=int, default=evaluation.EvalConfig.select_stride,
                  help="pcdiff with --select-samples > 1: score the samples' overlaps and J_map at every "
                       "N-th step of the 3 s lookahead (cheaper; 1 = every step)")
+  p.add_argument("--select-proposal-weight", type=float,
+                 default=evaluation.EvalConfig.select_proposal_weight,
+                 help="pcdiff with --select-samples > 1: also prefer the sample the encoder's proposals "
+                      "make likeliest, with this weight on its negative log-likelihood (nats; 0 = off)")
+  p.add_argument("--select-proposal-scale", type=float,
+                 default=evaluation.EvalConfig.select_proposal_scale,
+                 help="the likelihood's scale around each proposal (m)")
+  p.add_argument("--stop-hold", action=argparse.BooleanOptionalAction,
+                 default=evaluation.EvalConfig.stop_hold,
+                 help="pcdiff: braking stops a forward-moving agent at standstill instead of backing it up")
   p.add_argument("--simpl-ar-sample", action="store_true",
                  help="simpl-ar: draw each agent's mode by its probability (default: the top mode)")
   p.add_argument("--num-rollouts", type=int, default=1,
@@ -123,6 +133,10 @@ def parse_args(argv=None) -> argparse.Namespace:
       p.error(f"--{name.replace('_', '-')} must be >= 1")
   if args.select_map_weight < 0:
     p.error("--select-map-weight must be >= 0")
+  if args.select_proposal_weight < 0:
+    p.error("--select-proposal-weight must be >= 0")
+  if args.select_proposal_scale <= 0:
+    p.error("--select-proposal-scale must be > 0 (m)")
   lookahead = PolicyConfig.select_lookahead
   if args.select_stride > lookahead:
     p.error(f"--select-stride must be <= {lookahead} (the selection's lookahead, in steps)")
@@ -175,6 +189,8 @@ def main(argv=None) -> int:
                               ensemble_pass=args.ensemble_pass,
                               simpl_ar_sample=args.simpl_ar_sample, select_samples=args.select_samples,
                               select_map_weight=args.select_map_weight, select_stride=args.select_stride,
+                              select_proposal_weight=args.select_proposal_weight, stop_hold=args.stop_hold,
+                              select_proposal_scale=args.select_proposal_scale,
                               metrics=MetricsConfig(max_reactive_agents=args.max_agents),
                               guidance=GuidanceConfig(
                                   mode=args.guidance, w_map=args.w_map, w_coll=args.w_coll,

@@ -58,12 +58,15 @@ class EvalConfig:
   many joint plans per replan and keep, per agent, the one that collides
   least (`PolicyConfig.select_samples`), select_map_weight: and that leaves
   the road least (`PolicyConfig.select_map_weight`), scored at every
-  select_stride-th step (`PolicyConfig.select_stride`); jerk_limit: their
+  select_stride-th step (`PolicyConfig.select_stride`), select_proposal_weight /
+  select_proposal_scale: and that the encoder's proposals make likeliest
+  (`PolicyConfig.select_proposal_weight`); jerk_limit: their
   executed acceleration's rate limit (`PolicyConfig.jerk_limit`); warm_proposals:
   their warm samples that start from proposals (`PolicyConfig.warm_proposals`);
   ensemble_brake_weight / ensemble_brake_margin / ensemble_pass: the ensemble's
   weight where a new plan brakes harder (or differs more: "both";
-  `PolicyConfig.ensemble_brake_weight`).
+  `PolicyConfig.ensemble_brake_weight`); stop_hold: their braking ends at
+  standstill instead of reversing (`PolicyConfig.stop_hold`).
   simpl_ar_sample: SIMPL-AR draws its modes by their probabilities instead of
   taking the top mode.
 
@@ -100,11 +103,14 @@ class EvalConfig:
   select_samples: int = 4
   select_map_weight: float = 30.0
   select_stride: int = 3
+  select_proposal_weight: float = 0.0
+  select_proposal_scale: float = 1.0
   jerk_limit: tuple[float, float] = (1.5, 5.0)
   warm_proposals: int = 0
   ensemble_brake_weight: Optional[float] = None
   ensemble_brake_margin: float = 0.0
   ensemble_pass: str = "brake"
+  stop_hold: bool = False
 
   @property
   def adversarial_scores(self) -> bool:
@@ -155,10 +161,12 @@ def _method_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
                              select_samples=cfg.select_samples,
                              select_map_weight=cfg.select_map_weight,
                              select_stride=cfg.select_stride, jerk_limit=cfg.jerk_limit,
+                             select_proposal_weight=cfg.select_proposal_weight,
+                             select_proposal_scale=cfg.select_proposal_scale,
                              warm_proposals=cfg.warm_proposals,
                              ensemble_brake_weight=cfg.ensemble_brake_weight,
                              ensemble_brake_margin=cfg.ensemble_brake_margin,
-                             ensemble_pass=cfg.ensemble_pass)
+                             ensemble_pass=cfg.ensemble_pass, stop_hold=cfg.stop_hold)
   return policy.actor(with_agent_cap(model_cfg, cfg.metrics), pcfg), models
 
 

@@ -149,6 +149,12 @@ class PolicyConfig:
   first 50 val scenes, weight 0 / 10 / 30 / 100 gave 6.1 / 2.9 / 2.6 / 2.7%
   off-road at 4.3 / 5.1 / 5.2 / 5.2% collisions, same realism.
 
+  select_proposal_weight, select_proposal_scale (m): with S > 1, each sample
+  also costs this weight times its `proposal_nll` over the lookahead: how
+  unlikely the encoder's K proposals and their probabilities make it (a
+  Gaussian mixture of this scale around the proposals), relative to the
+  agent's likeliest sample. 0 (off) by default.
+
   select_stride: overlaps and J_map are scored at every N-th step of the
   lookahead only (overlap counts weighted N times, so the two terms keep
   their balance). Default 3 since session 11 (with warm_ddim_steps 1, above):
@@ -165,6 +171,16 @@ class PolicyConfig:
   W1 0.70 -> 0.42 (jerk W1 1.93 -> 1.04) with collisions 3.96 -> 3.68,
   off-road 1.96 -> 1.66 and minADE 2.56 -> 2.44; a slower rise (1, 3 or 10)
   smooths more but collides more (4.4-4.9%).
+
+  stop_hold: braking ends at standstill (`hold_at_stop`): an agent moving
+  forward or stopped never backs up because its plan brakes. A plan drawn
+  for a parked car has small accelerations of either sign (sampling noise in
+  the latent), and the kinematic model integrates a brake at v = 0 into
+  reversing: on the first 16 val scenes 53% of the steps of the parked cars
+  (log path < 0.5 m) reversed faster than 0.05 m/s and they crept 1.7 m on
+  average (SIMPL-AR: 0.17 m); with the hold none reversed. First 50 val
+  scenes, 3 seeds: 1.93 / 0.98 / 0.33 / 2.25 against 2.45 / 1.08 / 0.34 /
+  2.33 without it (docs/RESULTS.md, "Session 15").
 
   warm_proposals: with warm starts and S = select_samples > 1, samples
   1..n of a warm replan start from each agent's n most likely proposal
@@ -194,8 +210,11 @@ class PolicyConfig:
   select_lookahead: int = 30
   select_map_weight: float = 30.0
   select_stride: int = 3
+  select_proposal_weight: float = 0.0
+  select_proposal_scale: float = 1.0
   jerk_limit: tuple[float, float] = (1.5, 5.0)
   warm_proposals: int = 0
+  stop_hold: bool = False
 
 
 @struct.dataclass
@@ -311,7 +330,8 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
       road_here = road.in_frame(feats.scene_xy, feats.scene_yaw)
       road_here = jax.tree_util.tree_map(lambda a: a[None], road_here)   # a batch of 1 for map_cost
     y0 = select_sample(y0, models, cond, batched, cfg, policy.select_lookahead, keep,
-                       road_here, policy.select_map_weight, policy.guidance, policy.select_stride)
+                       road_here, policy.select_map_weight, policy.guidance, policy.select_stride,
+                       policy.select_proposal_weight, policy.select_proposal_scale)
   actions = dynamics.clip_action(latent.decode(y0[0], models.stats), cfg.kinematics)  # (A, T, 2)
   if policy.execute == "track":   # the world-frame path is only needed to track it
     states = dynamics.rollout(latent.initial_states(cond.speed[0]), actions, cfg.kinematics.dt)
@@ -346,12 +366,14 @@ def select_sample(y0: Array, models: Models, cond: planner.Conditioning, batched
                   lookahead: int, keep: Array, road: Optional[RoadField] = None,
                   map_weight: float = 0.0,
                   guidance: guidance_lib.GuidanceConfig = guidance_lib.GuidanceConfig(),
-                  stride: int = 1) -> Array:
+                  stride: int = 1, proposal_weight: float = 0.0, proposal_scale: float = 1.0) -> Array:
   """(1, A, d): per agent, one of the S joint samples y0 (S, A, d) of one scene
   (cond, batched: that scene repeated S times) such that the chosen plans
   overlap least over their first `lookahead` steps, every `stride`-th (`PolicyConfig.select_samples`),
   plus map_weight x each sample's J_map on `road` (the scene's field in the
-  scene frame) when map_weight > 0; agents where keep (A,) keep sample 0."""
+  scene frame) when map_weight > 0, plus proposal_weight x its
+  `proposal_nll` (scale `proposal_scale` m) when proposal_weight > 0; agents
+  where keep (A,) keep sample 0."""
   states = planner.decode_states(models.stats, cond, y0, cfg)[..., :lookahead:stride, :]   # (S, A, L, 4)
   xy, yaw = planner.to_scene(states, batched)
   feats = jax.tree_util.tree_map(lambda a: a[0], batched)
@@ -365,6 +387,11 @@ def select_sample(y0: Array, models: Models, cond: planner.Conditioning, batched
                                  vehicle=feats.agent_types == ObjectType.VEHICLE,
                                  pursuer=jnp.int32(-1), evader=jnp.int32(-1))
     unary = map_weight * guidance_lib.map_cost(xy, yaw, agents, road, guidance).T    # (A, S)
+  if proposal_weight > 0:
+    proposals = latent.rollout(jnp.moveaxis(cond.proposals[0], -2, 0), cond.speed[0], models.stats,
+                               cfg.kinematics)[..., :lookahead:stride, :2]          # (K, A, L, 2)
+    nll = proposal_nll(states[..., :2], proposals, cond.probs[0], proposal_scale)   # (S, A)
+    unary = unary + proposal_weight * (nll - jnp.min(nll, axis=0)).T
   # ICM starts from each agent's best unary sample (sample 0 on ties) and never moves a kept
   # agent: a zero unary keeps it on sample 0.
   unary = jnp.where(keep[:, None], 0.0, unary)
@@ -373,6 +400,18 @@ def select_sample(y0: Array, models: Models, cond: planner.Conditioning, batched
   choice = joint_selection.iterated_conditional_modes(
       unary, coll, feats.agent_valid & ~keep, float(stride), sweeps=2, order=jnp.arange(num))
   return jnp.take_along_axis(y0, choice[None, :, None], axis=0)
+
+
+def proposal_nll(paths: Array, proposals: Array, probs: Array, scale: float) -> Array:
+  """(S, A) -log sum_k p_k exp(-D_k / (2 scale^2)) of each sampled path
+  (S, A, L, 2) under the encoder's proposals (K, A, L, 2) and their
+  probabilities (A, K), D_k the mean squared distance to proposal k (agent
+  frame, m^2): how unlikely the encoder finds a plan. A parked car whose
+  encoder says 'stays' with p = 0.98 pays about 4 nats for a sample that
+  pulls away along a 2% proposal; between likely modes the cost hardly differs."""
+  dist = jnp.mean(jnp.sum(jnp.square(paths[:, None] - proposals[None]), -1), -1)   # (S, K, A)
+  logp = jnp.log(jnp.maximum(probs.T, 1e-9))[None]                                   # (1, K, A)
+  return -jax.nn.logsumexp(logp - dist / (2.0 * scale ** 2), axis=1)
 
 
 def road_for(state: SimulatorState, policy: PolicyConfig) -> RoadField:
@@ -528,6 +567,10 @@ def validate(cfg: Config, policy: PolicyConfig) -> None:
     raise ValueError(f"select_stride must be in [1, select_lookahead], got {policy.select_stride}")
   if policy.select_map_weight < 0:
     raise ValueError(f"select_map_weight must be >= 0, got {policy.select_map_weight}")
+  if policy.select_proposal_weight < 0:
+    raise ValueError(f"select_proposal_weight must be >= 0, got {policy.select_proposal_weight}")
+  if policy.select_proposal_scale <= 0:
+    raise ValueError(f"select_proposal_scale must be > 0 (m), got {policy.select_proposal_scale}")
   most = min(policy.select_samples - 1, cfg.encoder.num_modes)
   if not 0 <= policy.warm_proposals <= most:
     raise ValueError(f"warm_proposals must be in [0, min(select_samples - 1, num_modes) = {most}], "
@@ -578,7 +621,22 @@ def _execute(state: SimulatorState, plan: Array, path: Array, age, policy: Polic
     now = jnp.take(plan, age, axis=1)
   if any(policy.jerk_limit):
     now = limit_jerk(state, now, policy.jerk_limit, cfg.kinematics.dt)
+  if policy.stop_hold:
+    now = hold_at_stop(state, now, cfg.kinematics.dt)
   return now
+
+
+STOPPED_REVERSE_SPEED = 0.1   # m/s: slower reversing is a stop (float error, log noise), not a manoeuvre
+
+
+def hold_at_stop(state: SimulatorState, actions: Array, dt: float) -> Array:
+  """(O, 2) actions whose braking stops at standstill: an agent moving forward
+  or stopped (signed speed v > -STOPPED_REVERSE_SPEED) gets an acceleration
+  of at least -v / dt, so it ends the step at v >= 0 instead of backing up;
+  an agent reversing faster is left alone."""
+  v = dynamics.states_from_trajectory(state.current_sim_trajectory)[:, 0, dynamics.V]
+  accel = actions[:, 0]
+  return actions.at[:, 0].set(jnp.where(v > -STOPPED_REVERSE_SPEED, jnp.maximum(accel, -v / dt), accel))
 
 
 def executed_accel(state: SimulatorState, dt: float) -> Array:

@@ -285,6 +285,51 @@ def test_jerk_limit_moves_the_executed_acceleration_by_a_bounded_step():
     policy.actor(CFG, policy.PolicyConfig(jerk_limit=(-1.0, 0.0)))
 
 
+def test_braking_stops_at_standstill_instead_of_reversing(models):
+  """stop_hold: a forward-moving or stopped agent's braking ends at v = 0 (no backing up from a
+  brake); an agent that really reverses keeps its action; the yaw rate is untouched."""
+  from pcdiff_jax.sim import dynamics
+  from pcdiff_jax.sim.datatypes import Action
+  state = env.reset(make_scene(num_steps=91, speeds=(10.0, 0.3, 0.0, -2.0)))
+  dt = CFG.kinematics.dt
+  wanted = jnp.array([[-2.0, 0.1], [-5.0, 0.2], [-1.0, 0.3], [-1.0, 0.0]])
+  held = np.asarray(jax.jit(lambda s, a: policy.hold_at_stop(s, a, dt))(state, wanted))
+  np.testing.assert_allclose(held[:, 0], [-2.0, -3.0, 0.0, -1.0], atol=1e-5)
+  np.testing.assert_array_equal(held[:, 1], np.asarray(wanted)[:, 1])
+  moved = env.step(state, Action(data=jnp.asarray(held), valid=jnp.ones((4, 1), bool)), jnp.ones(4, bool))
+  speed = np.asarray(dynamics.states_from_trajectory(moved.current_sim_trajectory))[:, 0, dynamics.V]
+  np.testing.assert_allclose(speed, [9.8, 0.0, 0.0, -2.1], atol=1e-4)
+  # In closed loop no agent that started at v >= 0 ever backs up.
+  act = policy.actor(CFG, policy.PolicyConfig(ddim_steps=2, select_samples=1, stop_hold=True))
+  select = jax.jit(act.select_action)
+  state = env.reset(make_scene(num_steps=91, speeds=(10.0, 0.0, 0.0, 0.5)))
+  ps = act.init(jax.random.key(0), state)
+  for k in range(6):
+    out = select(models, state, ps, jax.random.key(k))
+    ps = out.actor_state
+    state = env.step(state, out.action, out.is_controlled)
+    speed = np.asarray(dynamics.states_from_trajectory(state.current_sim_trajectory))[:, 0, dynamics.V]
+    assert np.all(speed > -policy.STOPPED_REVERSE_SPEED), speed
+  assert select._cache_size() == 1
+
+
+def test_proposal_likelihood_prefers_what_the_encoder_finds_likely():
+  t = jnp.arange(1, 11, dtype=jnp.float32)[:, None] * jnp.array([1.0, 0.0])     # (L, 2): 1 m per step ahead
+  stay, go = jnp.zeros((10, 2)), t
+  proposals = jnp.stack([stay, go])[:, None]                                    # (K=2, A=1, L, 2)
+  paths = jnp.stack([stay, go])[:, None]                                        # (S=2, A=1, L, 2)
+  parked = np.asarray(policy.proposal_nll(paths, proposals, jnp.array([[0.98, 0.02]]), 1.0))[:, 0]
+  np.testing.assert_allclose(parked, [-np.log(0.98), -np.log(0.02)], atol=1e-3)   # D = 38.5 m^2: no overlap
+  even = np.asarray(policy.proposal_nll(paths, proposals, jnp.array([[0.5, 0.5]]), 1.0))[:, 0]
+  np.testing.assert_allclose(even[0], even[1], atol=1e-6)                       # likely modes cost alike
+  # A wider scale blurs the modes: the unlikely one costs less.
+  assert float(policy.proposal_nll(paths, proposals, jnp.array([[0.98, 0.02]]), 20.0)[1, 0]) < parked[1]
+  with pytest.raises(ValueError, match="select_proposal_weight"):
+    policy.actor(CFG, policy.PolicyConfig(select_proposal_weight=-1.0))
+  with pytest.raises(ValueError, match="select_proposal_scale"):
+    policy.actor(CFG, policy.PolicyConfig(select_proposal_scale=0.0))
+
+
 def test_sample_selection_keeps_the_least_colliding_joint_plan(models):
   from pcdiff_jax.model import features as features_lib
   from pcdiff_jax.model import guidance as guidance_lib
@@ -342,6 +387,19 @@ def test_sample_selection_keeps_the_least_colliding_joint_plan(models):
   clear = np.asarray(feats.agent_valid & ~keep) & (ranked[:, 1] - ranked[:, 0] > 0.1)
   assert clear.sum() >= 1
   np.testing.assert_array_equal(choice[clear], np.argmin(cost, -1)[clear])
+  # With a proposal term (select_proposal_weight) that dwarfs the rest, each agent keeps its
+  # sample the encoder's proposals make likeliest.
+  likely = jax.jit(lambda: policy.select_sample(y0, models, cond, batched, CFG, 30, keep,
+                                                proposal_weight=1e6, proposal_scale=2.0))()
+  choice = np.asarray(jnp.argmax(jnp.all(likely == y0, -1), 0))
+  paths = planner.decode_states(models.stats, cond, y0, CFG)[..., :30, :2]
+  proposals = jax.vmap(lambda p: planner.decode_states(models.stats, jax.tree_util.tree_map(
+      lambda a: a[:1], cond), p[None], CFG)[0], in_axes=1)(cond.proposals[0])[..., :30, :2]   # (K, A, L, 2)
+  nll = np.asarray(policy.proposal_nll(paths, proposals, cond.probs[0], 2.0))            # (S, A)
+  ranked = np.sort(nll, 0)
+  clear = np.asarray(feats.agent_valid & ~keep) & (ranked[1] - ranked[0] > 1e-3)
+  assert clear.sum() >= 1 and choice[0] == 0
+  np.testing.assert_array_equal(choice[clear], np.argmin(nll, 0)[clear])
   # In closed loop (with consistent noise: each sample's its own draw): one program, finite actions.
   act = policy.actor(CFG, policy.PolicyConfig(ddim_steps=2, select_samples=s, consistent_noise=True, guidance=g))
   select = jax.jit(act.select_action)
