@@ -67,7 +67,8 @@ def _round_policy(name: str = "v8"):
   if name == "defaults":
     return dc.replace(policy.PolicyConfig(), select_samples=1)
   return policy.PolicyConfig(select_samples=1, warm_step=30, warm_ddim_steps=2, select_stride=1,
-                             temporal_ensemble=(0.3, 0.0), jerk_limit=(0.0, 0.0), warm_proposals=0)
+                             temporal_ensemble=(0.3, 0.0), jerk_limit=(0.0, 0.0), warm_proposals=0,
+                             stop_hold=False)
 
 
 def parse_args(argv=None) -> argparse.Namespace:

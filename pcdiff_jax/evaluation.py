@@ -110,7 +110,7 @@ class EvalConfig:
   ensemble_brake_weight: Optional[float] = None
   ensemble_brake_margin: float = 0.0
   ensemble_pass: str = "brake"
-  stop_hold: bool = False
+  stop_hold: bool = True
 
   @property
   def adversarial_scores(self) -> bool:

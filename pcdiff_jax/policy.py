@@ -178,9 +178,11 @@ class PolicyConfig:
   the latent), and the kinematic model integrates a brake at v = 0 into
   reversing: on the first 16 val scenes 53% of the steps of the parked cars
   (log path < 0.5 m) reversed faster than 0.05 m/s and they crept 1.7 m on
-  average (SIMPL-AR: 0.17 m); with the hold none reversed. First 50 val
-  scenes, 3 seeds: 1.93 / 0.98 / 0.33 / 2.25 against 2.45 / 1.08 / 0.34 /
-  2.33 without it (docs/RESULTS.md, "Session 15").
+  average (SIMPL-AR: 0.17 m); with the hold none reversed. Default since
+  session 15: collisions / off-road / realism W1 / minADE on the first 50
+  val scenes (3 seeds) 1.93 / 0.98 / 0.33 / 2.25 against 2.45 / 1.08 / 0.34
+  / 2.33 without it, on all 200 val scenes 2.64 / 1.60 / 0.33 / 2.35
+  against 3.36 / 1.74 / 0.34 / 2.44 (docs/RESULTS.md, "Session 15").
 
   warm_proposals: with warm starts and S = select_samples > 1, samples
   1..n of a warm replan start from each agent's n most likely proposal
@@ -214,7 +216,7 @@ class PolicyConfig:
   select_proposal_scale: float = 1.0
   jerk_limit: tuple[float, float] = (1.5, 5.0)
   warm_proposals: int = 0
-  stop_hold: bool = False
+  stop_hold: bool = True
 
 
 @struct.dataclass
