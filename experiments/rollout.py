@@ -189,8 +189,8 @@ def main(argv=None) -> int:
                               ensemble_pass=args.ensemble_pass,
                               simpl_ar_sample=args.simpl_ar_sample, select_samples=args.select_samples,
                               select_map_weight=args.select_map_weight, select_stride=args.select_stride,
-                              select_proposal_weight=args.select_proposal_weight, stop_hold=args.stop_hold,
-                              select_proposal_scale=args.select_proposal_scale,
+                              select_proposal_weight=args.select_proposal_weight,
+                              select_proposal_scale=args.select_proposal_scale, stop_hold=args.stop_hold,
                               metrics=MetricsConfig(max_reactive_agents=args.max_agents),
                               guidance=GuidanceConfig(
                                   mode=args.guidance, w_map=args.w_map, w_coll=args.w_coll,
