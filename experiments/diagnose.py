@@ -17,6 +17,13 @@ replay        executes one 8 s plan made at the rollout start, open loop, for
 drift         closed-loop rollout of a method; the controlled agents' offset
               from their log in the log's own frame (lateral: left positive)
               and heading error at 1, 2, 4, 6, 8 s.
+parked        open-loop plans for the vehicles parked in the log (path under
+              0.5 m over the 8 s after t, valid for half of them): the end
+              displacement of `--samples` plans per agent made at t, cold
+              (the default sampler from the prior) and warm from the agent's
+              most likely proposal noised to each of `--warm-steps` (one DDIM
+              step, as a warm replan), against the proposal itself decoded.
+              A parked car whose plans end metres away creeps in closed loop.
 first-action  the first action [accel, yaw rate] of the plans the policy
               makes at the rollout start, against the log's, for moving
               vehicles (> 2 m/s): a mean yaw rate far from the log's is a
@@ -196,6 +203,54 @@ def first_action(args, models, cfg, batch, num) -> dict:
   return rows
 
 
+PARKED_PATH = 0.5   # m over the horizon: the log's parked vehicles
+
+
+def parked(args, models, cfg, batch, num) -> dict:
+  """End displacement (m) of open-loop plans for the log's parked vehicles."""
+  horizon = cfg.encoder.horizon
+  warm_steps = tuple(int(w) for w in args.warm_steps.split(","))
+
+  def one(state, rng):
+    state = env.reset(state)
+    feats = features_lib.scene_features(state, cfg.features)
+    cond = planner.condition(models.encoder, models.stats, jax.tree_util.tree_map(lambda a: a[None], feats), cfg)
+    tiled = jax.tree_util.tree_map(lambda a: jnp.repeat(a, args.samples, 0), cond.replace(inputs=None))
+    tiled = tiled.replace(inputs=cond.inputs)                                  # (S, A, ...), one context
+    top = jnp.take_along_axis(cond.proposals, jnp.argmax(cond.probs, -1)[..., None, None], -2)[..., 0, :]
+    end = lambda y: jnp.linalg.norm(planner.decode_states(models.stats, tiled, y, cfg)[..., -1, :2], axis=-1)
+    keys = jax.random.split(rng, 1 + len(warm_steps))
+    ends = {"top1 proposal": end(jnp.broadcast_to(top, tiled.mu.shape)),
+            "cold": end(planner.sample(models.denoiser, tiled, cfg, keys[0]))}
+    for key, step in zip(keys[1:], warm_steps):
+      y = planner.sample(models.denoiser, tiled, cfg, key, 1, 0.0,
+                         centre=jnp.broadcast_to(top, tiled.mu.shape), start_step=step)
+      ends[f"warm from top1 @{step}"] = end(y)
+    log = jax.lax.dynamic_slice_in_dim(state.log_trajectory.xy, state.timestep, horizon + 1, 1)
+    valid = jax.lax.dynamic_slice_in_dim(state.log_trajectory.valid, state.timestep, horizon + 1, 1)
+    pairs = valid[:, 1:] & valid[:, :-1]
+    path = jnp.sum(jnp.where(pairs, jnp.linalg.norm(jnp.diff(log, axis=1), axis=-1), 0.0), -1)
+    seen = jnp.mean(valid, -1) >= 0.5
+    still = (feats.agent_valid & (seen & (path < PARKED_PATH))[feats.agent_index]
+             & (feats.agent_types == ObjectType.VEHICLE))
+    return ends, still, jnp.max(cond.probs[0], -1)
+
+  ends, still, top_p = jax.jit(jax.vmap(one))(batch, jax.random.split(jax.random.PRNGKey(args.seed), num))
+  still = np.asarray(still)                                                    # (B, A)
+  if not still.any():
+    print("no vehicle parked in the log among the modelled agents")
+    return {name: dict(agents=0) for name in ends}
+  rows = {}
+  for name, e in ends.items():
+    e = np.moveaxis(np.asarray(e), 1, -1)[still]                               # (agents, S)
+    rows[name] = dict(median_m=float(np.median(e)), over_1m=float(np.mean(e > 1.0)),
+                      over_5m=float(np.mean(e > 5.0)), agents=int(still.sum()))
+    r = rows[name]
+    print(f"| {name} | {r['median_m']:.1f} | {r['over_1m']:.2f} | {r['over_5m']:.2f} | {r['agents']} |", flush=True)
+  print(f"(their encoder's top probability: mean {float(np.asarray(top_p)[still].mean()):.3f})")
+  return rows
+
+
 def main(argv=None) -> None:
   p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
   p.add_argument("--checkpoint", required=True, help="diffusion training workdir (e.g. runs/cpu)")
@@ -217,9 +272,19 @@ def main(argv=None) -> None:
   f = sub.add_parser("first-action", help="first planned action against the log's")
   f.add_argument("--ddim-steps", type=int, default=5)
   f.add_argument("--no-prior", dest="prior", action="store_false")
+  k = sub.add_parser("parked", help="open-loop plans of the log's parked vehicles")
+  k.add_argument("--samples", type=int, default=16)
+  k.add_argument("--warm-steps", default="30,90", help="comma-separated diffusion steps of the warm starts")
   args = p.parse_args(argv)
   if args.num_scenes < 1:
     p.error("--num-scenes must be >= 1")
+  if args.section == "parked":
+    try:
+      steps = [int(w) for w in args.warm_steps.split(",")]
+    except ValueError:
+      p.error(f"--warm-steps {args.warm_steps!r}: comma-separated integers")
+    if args.samples < 1 or not all(0 <= w <= 99 for w in steps):
+      p.error("--samples must be >= 1 and --warm-steps in [0, 99]")
   if not os.path.exists(args.scenarios):
     p.error(f"--scenarios {args.scenarios}: no such file")
 
@@ -232,13 +297,16 @@ def main(argv=None) -> None:
     p.error(str(err))
   headers = {"replay": "| plan | collision | off-road | realism W1 | minADE |",
              "drift": "| time | lateral mean (m, left +) | lateral abs | heading mean (rad) | heading abs | agents |",
-             "first-action": "| plan | yaw rate mean (rad/s) | yaw rate abs | accel mean (m/s^2) | agents |"}
+             "first-action": "| plan | yaw rate mean (rad/s) | yaw rate abs | accel mean (m/s^2) | agents |",
+             "parked": "| plans of parked vehicles | median end (m) | share > 1 m | share > 5 m | agents |"}
   print(headers[args.section])
   print("|" + "---|" * (headers[args.section].count("|") - 1))
   if args.section == "replay":
     rows = replay(args, models, cfg, batch, num)
   elif args.section == "drift":
     rows = drift(args, models, cfg, batch, num)
+  elif args.section == "parked":
+    rows = parked(args, models, cfg, batch, num)
   else:
     rows = first_action(args, models, cfg, batch, num)
   if args.out:

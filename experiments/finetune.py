@@ -120,6 +120,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="guided targets: the teacher's guided DDIM steps (of 5)")
   p.add_argument("--teacher-inner-steps", type=int, default=3,
                  help="guided targets: gradient steps per guided DDIM step")
+  p.add_argument("--prior-spread", choices=("uniform", "weighted"), default=None,
+                 help="pcdiff: re-train the denoiser with this proposal prior (config diffusion.prior_spread; "
+                      "default: --from's)")
   p.add_argument("--lane-inputs", action="store_true",
                  help="give the denoiser (--policy simpl-ar: SIMPL-AR's encoder) each agent's lane-relative "
                       "inputs (model.lane_context) through new zero-initialised projections, trained from here on")
@@ -252,6 +255,9 @@ def main(argv=None) -> int:
         model_cfg = dataclasses.replace(model_cfg, diffusion=dataclasses.replace(model_cfg.diffusion,
                                                                                  denoiser=den_cfg))
         models = models.replace(denoiser=denoiser.with_new_inputs(models.denoiser, den_cfg))
+    if args.prior_spread is not None and not simpl:
+      model_cfg = dataclasses.replace(model_cfg, diffusion=dataclasses.replace(
+          model_cfg.diffusion, prior_spread=args.prior_spread))
     metrics_cfg = dataclasses.replace(model_cfg.metrics, max_reactive_agents=args.max_agents)
     run_cfg = evaluation.with_agent_cap(model_cfg, metrics_cfg)
     actor = None

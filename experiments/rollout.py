@@ -88,6 +88,10 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--stop-hold", action=argparse.BooleanOptionalAction,
                  default=evaluation.EvalConfig.stop_hold,
                  help="pcdiff: braking stops a forward-moving agent at standstill instead of backing it up")
+  p.add_argument("--start-gate", type=float, nargs=2, metavar=("SECONDS", "METRES"),
+                 default=evaluation.EvalConfig.start_gate,
+                 help="pcdiff: a (nearly) stopped agent starts only when its plan carries it at least "
+                      "METRES within SECONDS (0 0 = off)")
   p.add_argument("--simpl-ar-sample", action="store_true",
                  help="simpl-ar: draw each agent's mode by its probability (default: the top mode)")
   p.add_argument("--num-rollouts", type=int, default=1,
@@ -137,6 +141,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.error("--select-proposal-weight must be >= 0")
   if args.select_proposal_scale <= 0:
     p.error("--select-proposal-scale must be > 0 (m)")
+  if not all(g >= 0 for g in args.start_gate):
+    p.error("--start-gate takes SECONDS METRES >= 0")
   lookahead = PolicyConfig.select_lookahead
   if args.select_stride > lookahead:
     p.error(f"--select-stride must be <= {lookahead} (the selection's lookahead, in steps)")
@@ -190,7 +196,9 @@ def main(argv=None) -> int:
                               simpl_ar_sample=args.simpl_ar_sample, select_samples=args.select_samples,
                               select_map_weight=args.select_map_weight, select_stride=args.select_stride,
                               select_proposal_weight=args.select_proposal_weight,
-                              select_proposal_scale=args.select_proposal_scale, stop_hold=args.stop_hold,
+                              select_proposal_scale=args.select_proposal_scale,
+                              stop_hold=args.stop_hold,
+                              start_gate=tuple(args.start_gate),
                               metrics=MetricsConfig(max_reactive_agents=args.max_agents),
                               guidance=GuidanceConfig(
                                   mode=args.guidance, w_map=args.w_map, w_coll=args.w_coll,

@@ -113,6 +113,10 @@ class DiffusionConfig:
   beta_min: float = 1e-4
   beta_max: float = 5e-2
   eps_sigma: float = 0.3           # added to the proposal spread (OptTrajDiff's regulariser)
+  # How mu and sigma come from the K proposals: "uniform" (the paper's mean and std over the
+  # modes) or "weighted" (weighted by the encoder's probabilities: an agent whose encoder is sure
+  # gets a narrow prior around its likely mode, `diffusion.prior_from_proposals`).
+  prior_spread: str = "uniform"
   ddim_steps: int = 5
   eta: float = 0.0
   diffusion_loss_weight: float = 1.0

@@ -111,6 +111,7 @@ class EvalConfig:
   ensemble_brake_margin: float = 0.0
   ensemble_pass: str = "brake"
   stop_hold: bool = True
+  start_gate: tuple[float, float] = (0.0, 0.0)
 
   @property
   def adversarial_scores(self) -> bool:
@@ -166,7 +167,8 @@ def _method_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
                              warm_proposals=cfg.warm_proposals,
                              ensemble_brake_weight=cfg.ensemble_brake_weight,
                              ensemble_brake_margin=cfg.ensemble_brake_margin,
-                             ensemble_pass=cfg.ensemble_pass, stop_hold=cfg.stop_hold)
+                             ensemble_pass=cfg.ensemble_pass, stop_hold=cfg.stop_hold,
+                             start_gate=cfg.start_gate)
   return policy.actor(with_agent_cap(model_cfg, cfg.metrics), pcfg), models
 
 

@@ -184,6 +184,19 @@ class PolicyConfig:
   / 2.33 without it, on all 200 val scenes 2.64 / 1.60 / 0.33 / 2.35
   against 3.36 / 1.74 / 0.34 / 2.44 (docs/RESULTS.md, "Session 15").
 
+  start_gate: (seconds, metres): an agent slower than START_GATE_SPEED
+  starts moving only when the plan it executes would carry it at least
+  `metres` within the next `seconds` (`gate_start`); otherwise it does not
+  speed up, and one slower than STOPPED_REVERSE_SPEED stops. A plan drawn
+  for a stopped car is a small noisy acceleration around 0; with stop_hold,
+  only the forward part of that noise is executed, the agent creeps, and a
+  creeping agent is encoded as a moving one at the next replan, whose
+  proposals then move too. The gate asks a plan to commit to going. (0, 0)
+  (off) is the default: session 16 (docs/RESULTS.md), v8, (2 s, 2 m) took
+  the real record from 44.3 to 33.3% collisions but cost all 200 val scenes
+  0.5 points (2.64 -> 3.15%: cars waiting at intersections start late);
+  (2 s, 1 m) 39.6% there, level on val50.
+
   warm_proposals: with warm starts and S = select_samples > 1, samples
   1..n of a warm replan start from each agent's n most likely proposal
   latents (noised to warm_step like the previous plan) instead of from its
@@ -217,6 +230,7 @@ class PolicyConfig:
   jerk_limit: tuple[float, float] = (1.5, 5.0)
   warm_proposals: int = 0
   stop_hold: bool = True
+  start_gate: tuple[float, float] = (0.0, 0.0)
 
 
 @struct.dataclass
@@ -573,6 +587,8 @@ def validate(cfg: Config, policy: PolicyConfig) -> None:
     raise ValueError(f"select_proposal_weight must be >= 0, got {policy.select_proposal_weight}")
   if policy.select_proposal_scale <= 0:
     raise ValueError(f"select_proposal_scale must be > 0 (m), got {policy.select_proposal_scale}")
+  if len(policy.start_gate) != 2 or not all(g >= 0 for g in policy.start_gate):
+    raise ValueError(f"start_gate must be (seconds, metres) >= 0, got {policy.start_gate}")
   most = min(policy.select_samples - 1, cfg.encoder.num_modes)
   if not 0 <= policy.warm_proposals <= most:
     raise ValueError(f"warm_proposals must be in [0, min(select_samples - 1, num_modes) = {most}], "
@@ -625,6 +641,10 @@ def _execute(state: SimulatorState, plan: Array, path: Array, age, policy: Polic
     now = limit_jerk(state, now, policy.jerk_limit, cfg.kinematics.dt)
   if policy.stop_hold:
     now = hold_at_stop(state, now, cfg.kinematics.dt)
+  if policy.start_gate[0] > 0:
+    seconds, metres = policy.start_gate
+    window = advance_plan(plan, age)[:, :max(1, round(seconds / cfg.kinematics.dt))]
+    now = gate_start(state, now, window, metres, cfg.kinematics.dt)
   return now
 
 
@@ -639,6 +659,24 @@ def hold_at_stop(state: SimulatorState, actions: Array, dt: float) -> Array:
   v = dynamics.states_from_trajectory(state.current_sim_trajectory)[:, 0, dynamics.V]
   accel = actions[:, 0]
   return actions.at[:, 0].set(jnp.where(v > -STOPPED_REVERSE_SPEED, jnp.maximum(accel, -v / dt), accel))
+
+
+START_GATE_SPEED = 0.5   # m/s: below it an agent is starting (or stopping), not driving
+
+
+def gate_start(state: SimulatorState, actions: Array, window: Array, metres: float, dt: float) -> Array:
+  """(O, 2) actions with the start gate (`PolicyConfig.start_gate`): an agent
+  moving forward slower than START_GATE_SPEED (or stopped) whose plan window
+  (O, H, 2) (its actions from now on) carries it less than `metres` (the
+  speed floored at 0, as stop_hold does) does not speed up, and comes to a
+  full stop below STOPPED_REVERSE_SPEED; faster or reversing agents keep
+  their action. The yaw rate is untouched."""
+  v = dynamics.states_from_trajectory(state.current_sim_trajectory)[:, 0, dynamics.V]
+  speeds = jnp.maximum(v[:, None] + jnp.cumsum(window[..., 0], axis=1) * dt, 0.0)     # (O, H)
+  slow = (v > -STOPPED_REVERSE_SPEED) & (v < START_GATE_SPEED)
+  gated = slow & (jnp.sum(speeds, axis=1) * dt < metres)
+  accel = jnp.where(v < STOPPED_REVERSE_SPEED, -v / dt, jnp.minimum(actions[:, 0], 0.0))
+  return actions.at[:, 0].set(jnp.where(gated, accel, actions[:, 0]))
 
 
 def executed_accel(state: SimulatorState, dt: float) -> Array:

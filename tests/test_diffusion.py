@@ -95,6 +95,14 @@ def test_prior_from_proposals():
   mu, sigma = D.prior_from_proposals(props, 0.3)
   np.testing.assert_allclose(np.asarray(mu), [[1.0, 1.0]])
   np.testing.assert_allclose(np.asarray(sigma), [[1.3, 0.3]])
+  # Weighted by the encoder's probabilities: equal weights are the plain prior, a sure encoder
+  # (p = 0.98 on one mode) gives a narrow prior about that mode.
+  even = D.prior_from_proposals(props, 0.3, jnp.array([[0.5, 0.5]]))
+  np.testing.assert_allclose(np.asarray(even[0]), [[1.0, 1.0]], atol=1e-6)
+  np.testing.assert_allclose(np.asarray(even[1]), [[1.3, 0.3]], atol=1e-5)
+  mu, sigma = D.prior_from_proposals(props, 0.3, jnp.array([[0.98, 0.02]]))
+  np.testing.assert_allclose(np.asarray(mu), [[0.04, 1.0]], atol=1e-6)
+  np.testing.assert_allclose(np.asarray(sigma), [[0.3 + 2 * np.sqrt(0.98 * 0.02), 0.3]], atol=1e-5)
 
 
 def test_warm_start_keeps_a_consistent_plan_and_starts_where_asked():

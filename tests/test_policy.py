@@ -189,6 +189,16 @@ def test_prior_centred_on_the_top_mode(models):
   assert bool(jnp.all(jnp.isfinite(plan)))
   with pytest.raises(ValueError, match="prior_centre"):
     policy.actor(CFG, policy.PolicyConfig(prior_centre="median"))
+  # prior_spread "weighted": the same proposals, weighted by the encoder's probabilities.
+  from pcdiff_jax.model import diffusion
+  weighted = lambda spread: dataclasses.replace(CFG, diffusion=dataclasses.replace(CFG.diffusion, prior_spread=spread))
+  cond_w = jax.jit(lambda f: planner.condition(models.encoder, models.stats, f, weighted("weighted")))(feats)
+  mu, sigma = diffusion.prior_from_proposals(cond.proposals, CFG.diffusion.eps_sigma, cond.probs)
+  np.testing.assert_allclose(np.asarray(cond_w.mu), np.asarray(mu), atol=1e-5)
+  np.testing.assert_allclose(np.asarray(cond_w.sigma), np.asarray(sigma), atol=1e-5)
+  assert not np.allclose(np.asarray(cond_w.sigma), np.asarray(cond.sigma))
+  with pytest.raises(ValueError, match="prior_spread"):
+    planner.condition(models.encoder, models.stats, feats, weighted("median"))
 
 
 def test_warm_start_advances_the_previous_plan(models):
@@ -312,6 +322,40 @@ def test_braking_stops_at_standstill_instead_of_reversing(models):
     speed = np.asarray(dynamics.states_from_trajectory(state.current_sim_trajectory))[:, 0, dynamics.V]
     assert np.all(speed > -policy.STOPPED_REVERSE_SPEED), speed
   assert select._cache_size() == 1
+
+
+def test_start_gate_lets_a_stopped_agent_go_only_on_a_committed_plan(models):
+  """start_gate: slow agents whose plan carries them less than `metres` within the window do not
+  speed up (a full stop below STOPPED_REVERSE_SPEED); a plan that commits to going, a faster agent
+  and a reversing one keep their action; in closed loop a gate no plan passes keeps stopped agents
+  exactly where they are."""
+  from pcdiff_jax.sim import dynamics
+  state = env.reset(make_scene(num_objects=4, num_steps=91, speeds=(0.0, 0.3, 0.0, -2.0)))
+  dt = CFG.kinematics.dt
+  now = jnp.array([[0.2, 0.1], [0.1, 0.0], [2.0, 0.0], [-1.0, 0.0]])
+  window = jnp.repeat(now[:, None], 20, axis=1)                  # (O, 2 s, 2): the same action throughout
+  # Over 2 s: 0.42 m, 0.81 m, 4.2 m (0 m reversing, the speed floored at 0) against 1 m.
+  gated = np.asarray(jax.jit(lambda s, a, w: policy.gate_start(s, a, w, 1.0, dt))(state, now, window))
+  np.testing.assert_allclose(gated[:, 0], [0.0, 0.0, 2.0, -1.0], atol=1e-6)
+  np.testing.assert_array_equal(gated[:, 1], np.asarray(now)[:, 1])
+  fast = env.reset(make_scene(num_objects=4, num_steps=91, speeds=(10.0, 0.6, 0.0, 0.05)))
+  slow = np.asarray(policy.gate_start(fast, now, window, 1.0, dt))
+  np.testing.assert_allclose(slow[:, 0], [0.2, 0.1, 2.0, -0.5], atol=1e-6)   # 0.05 m/s: a full stop
+  act = policy.actor(CFG, policy.PolicyConfig(ddim_steps=2, select_samples=1, start_gate=(2.0, 1e3)))
+  select = jax.jit(act.select_action)
+  state = env.reset(make_scene(num_steps=91, speeds=(10.0, 0.0, 0.0, 0.0)))
+  start = np.asarray(state.current_sim_trajectory.xy)[1:, 0]
+  ps = act.init(jax.random.key(0), state)
+  for k in range(4):
+    out = select(models, state, ps, jax.random.key(k))
+    ps = out.actor_state
+    state = env.step(state, out.action, out.is_controlled)
+  np.testing.assert_allclose(np.asarray(state.current_sim_trajectory.xy)[1:, 0], start, atol=1e-5)
+  speed = np.asarray(dynamics.states_from_trajectory(state.current_sim_trajectory))[1:, 0, dynamics.V]
+  np.testing.assert_allclose(speed, 0.0, atol=1e-6)
+  assert select._cache_size() == 1
+  with pytest.raises(ValueError, match="start_gate"):
+    policy.actor(CFG, policy.PolicyConfig(start_gate=(2.0, -1.0)))
 
 
 def test_proposal_likelihood_prefers_what_the_encoder_finds_likely():

@@ -212,6 +212,10 @@ def test_demo_pipeline_runs_end_to_end(tiny_trained, tmp_path):
   common = ["--checkpoint", model, "--scenarios", val, "--num-scenes", "1"]
   diagnose.main(common + ["--out", str(tmp_path / "first.json"), "first-action"])
   diagnose.main(common + ["--out", str(tmp_path / "replay.json"), "replay", "--plans", "log,top1-latent"])
+  diagnose.main(common + ["--out", str(tmp_path / "parked.json"), "parked", "--samples", "2", "--warm-steps", "30"])
+  with open(tmp_path / "parked.json") as f:
+    parked = json.load(f)["rows"]
+  assert set(parked) == {"top1 proposal", "cold", "warm from top1 @30"}
   with open(tmp_path / "first.json") as f:
     rows = json.load(f)["rows"]
   assert set(rows) == {"log", "log_latent", "top1", "prior_centre", "sample"}

@@ -63,11 +63,22 @@ def linear_schedule(num_steps: int = 100, beta_min: float = 1e-4, beta_max: floa
   return Schedule(betas=jnp.asarray(betas, jnp.float32), alphas_cumprod=jnp.asarray(abar, jnp.float32))
 
 
-def prior_from_proposals(proposal_latents: Array, eps_sigma: float) -> tuple[Array, Array]:
-  """(..., K, d) -> mu (..., d), sigma (..., d) over the K proposals."""
-  mu = jnp.mean(proposal_latents, axis=-2)
-  sigma = jnp.std(proposal_latents, axis=-2) + eps_sigma
-  return mu, sigma
+PRIOR_SPREADS = ("uniform", "weighted")
+
+
+def prior_from_proposals(proposal_latents: Array, eps_sigma: float,
+                         probs: Optional[Array] = None) -> tuple[Array, Array]:
+  """(..., K, d) -> mu (..., d), sigma (..., d) over the K proposals: their
+  mean and std, or with probs (..., K) the probability-weighted mean and std
+  (a parked car whose encoder says 'stays' with p = 0.98 then gets a prior
+  about its stay mode, not one spread over five moves it finds unlikely)."""
+  if probs is None:
+    mu = jnp.mean(proposal_latents, axis=-2)
+    return mu, jnp.std(proposal_latents, axis=-2) + eps_sigma
+  p = (probs / jnp.maximum(jnp.sum(probs, -1, keepdims=True), 1e-9))[..., None]   # (..., K, 1)
+  mu = jnp.sum(p * proposal_latents, axis=-2)
+  var = jnp.sum(p * jnp.square(proposal_latents - mu[..., None, :]), axis=-2)
+  return mu, jnp.sqrt(var + 1e-12) + eps_sigma
 
 
 def standard_prior(shape: tuple[int, ...]) -> tuple[Array, Array]:

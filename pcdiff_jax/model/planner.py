@@ -79,7 +79,11 @@ def condition(encoder_params: Any, stats: LatentStats, feats: SceneFeatures, cfg
   speed = agent_speed(feats)
   props = proposal_latents(out, speed, stats, cfg)                      # (..., A, K, d)
   if cfg.diffusion.denoiser.use_prior:
-    mu, sigma = diffusion.prior_from_proposals(props, cfg.diffusion.eps_sigma)
+    if cfg.diffusion.prior_spread not in diffusion.PRIOR_SPREADS:
+      raise ValueError(f"diffusion.prior_spread must be one of {diffusion.PRIOR_SPREADS}, "
+                       f"got {cfg.diffusion.prior_spread!r}")
+    weights = out.probs if cfg.diffusion.prior_spread == "weighted" else None
+    mu, sigma = diffusion.prior_from_proposals(props, cfg.diffusion.eps_sigma, weights)
   else:
     mu, sigma = diffusion.standard_prior(props.shape[:-2] + props.shape[-1:])
   inputs = DenoiserInputs(
