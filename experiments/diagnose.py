@@ -209,22 +209,18 @@ PARKED_PATH = 0.5   # m over the horizon: the log's parked vehicles
 def parked(args, models, cfg, batch, num) -> dict:
   """End displacement (m) of open-loop plans for the log's parked vehicles."""
   horizon = cfg.encoder.horizon
-  warm_steps = tuple(int(w) for w in args.warm_steps.split(","))
 
   def one(state, rng):
     state = env.reset(state)
     feats = features_lib.scene_features(state, cfg.features)
     cond = planner.condition(models.encoder, models.stats, jax.tree_util.tree_map(lambda a: a[None], feats), cfg)
-    tiled = jax.tree_util.tree_map(lambda a: jnp.repeat(a, args.samples, 0), cond.replace(inputs=None))
-    tiled = tiled.replace(inputs=cond.inputs)                                  # (S, A, ...), one context
-    top = jnp.take_along_axis(cond.proposals, jnp.argmax(cond.probs, -1)[..., None, None], -2)[..., 0, :]
+    tiled = planner.repeat_samples(cond, args.samples)                         # (S, A, ...)
+    top = planner.centre_on_top_mode(tiled).mu                                 # (S, A, d)
     end = lambda y: jnp.linalg.norm(planner.decode_states(models.stats, tiled, y, cfg)[..., -1, :2], axis=-1)
-    keys = jax.random.split(rng, 1 + len(warm_steps))
-    ends = {"top1 proposal": end(jnp.broadcast_to(top, tiled.mu.shape)),
-            "cold": end(planner.sample(models.denoiser, tiled, cfg, keys[0]))}
-    for key, step in zip(keys[1:], warm_steps):
-      y = planner.sample(models.denoiser, tiled, cfg, key, 1, 0.0,
-                         centre=jnp.broadcast_to(top, tiled.mu.shape), start_step=step)
+    keys = jax.random.split(rng, 1 + len(args.warm_steps))
+    ends = {"top1 proposal": end(top), "cold": end(planner.sample(models.denoiser, tiled, cfg, keys[0]))}
+    for key, step in zip(keys[1:], args.warm_steps):
+      y = planner.sample(models.denoiser, tiled, cfg, key, 1, 0.0, centre=top, start_step=step)
       ends[f"warm from top1 @{step}"] = end(y)
     log = jax.lax.dynamic_slice_in_dim(state.log_trajectory.xy, state.timestep, horizon + 1, 1)
     valid = jax.lax.dynamic_slice_in_dim(state.log_trajectory.valid, state.timestep, horizon + 1, 1)
@@ -251,6 +247,17 @@ def parked(args, models, cfg, batch, num) -> dict:
   return rows
 
 
+def _diffusion_steps(text: str) -> tuple[int, ...]:
+  """'30,90' -> (30, 90), each a diffusion step in [0, 99]."""
+  try:
+    steps = tuple(int(w) for w in text.split(","))
+  except ValueError:
+    raise argparse.ArgumentTypeError(f"{text!r}: comma-separated integers") from None
+  if not all(0 <= w <= 99 for w in steps):
+    raise argparse.ArgumentTypeError(f"{text!r}: steps in [0, 99]")
+  return steps
+
+
 def main(argv=None) -> None:
   p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
   p.add_argument("--checkpoint", required=True, help="diffusion training workdir (e.g. runs/cpu)")
@@ -274,17 +281,13 @@ def main(argv=None) -> None:
   f.add_argument("--no-prior", dest="prior", action="store_false")
   k = sub.add_parser("parked", help="open-loop plans of the log's parked vehicles")
   k.add_argument("--samples", type=int, default=16)
-  k.add_argument("--warm-steps", default="30,90", help="comma-separated diffusion steps of the warm starts")
+  k.add_argument("--warm-steps", default=(30, 90), type=_diffusion_steps,
+                 help="comma-separated diffusion steps (0-99) of the warm starts")
   args = p.parse_args(argv)
   if args.num_scenes < 1:
     p.error("--num-scenes must be >= 1")
-  if args.section == "parked":
-    try:
-      steps = [int(w) for w in args.warm_steps.split(",")]
-    except ValueError:
-      p.error(f"--warm-steps {args.warm_steps!r}: comma-separated integers")
-    if args.samples < 1 or not all(0 <= w <= 99 for w in steps):
-      p.error("--samples must be >= 1 and --warm-steps in [0, 99]")
+  if args.section == "parked" and args.samples < 1:
+    p.error("--samples must be >= 1")
   if not os.path.exists(args.scenarios):
     p.error(f"--scenarios {args.scenarios}: no such file")
 

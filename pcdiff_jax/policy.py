@@ -309,12 +309,9 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
   if policy.prior_centre == "top1":
     cond = planner.centre_on_top_mode(cond)
   init_noise = None if noise is None else noise[feats.agent_index][None]   # (1, A, d)
-  one_scene = cond
   if policy.select_samples > 1:   # S candidate plans as a batch of S copies of the scene
-    tile = lambda a: jnp.repeat(a, policy.select_samples, axis=0)
-    # The denoiser's inputs stay one copy: its context is computed once for all samples.
-    batched, cond = jax.tree_util.tree_map(tile, (batched, cond.replace(inputs=None)))
-    cond = cond.replace(inputs=one_scene.inputs)
+    batched = jax.tree_util.tree_map(lambda a: jnp.repeat(a, policy.select_samples, axis=0), batched)
+    cond = planner.repeat_samples(cond, policy.select_samples)
     if init_noise is not None:
       # Sample k starts from the consistent noise rolled by k over the agents: another
       # Gaussian draw per agent, still a function of the rollout's noise (not of rng).

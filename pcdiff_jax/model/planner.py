@@ -97,6 +97,13 @@ def condition(encoder_params: Any, stats: LatentStats, feats: SceneFeatures, cfg
                       probs=out.probs)
 
 
+def repeat_samples(cond: Conditioning, num: int) -> Conditioning:
+  """One scene's conditioning (batch 1) as `num` samples of it (batch num);
+  the denoiser's inputs stay one copy, so its context is computed once."""
+  tiled = jax.tree_util.tree_map(lambda a: jnp.repeat(a, num, axis=0), cond.replace(inputs=None))
+  return tiled.replace(inputs=cond.inputs)
+
+
 def centre_on_top_mode(cond: Conditioning) -> Conditioning:
   """The same prior centred on each agent's most likely proposal latent instead
   of the mean of its K proposals (sigma unchanged). A test-time option: the
