@@ -15,8 +15,11 @@ replay        executes one 8 s plan made at the rollout start, open loop, for
               what the representation itself costs before any diffusion, and
               how good one sampled plan is without the 10 Hz corrections.
 drift         closed-loop rollout of a method; the controlled agents' offset
-              from their log in the log's own frame (lateral: left positive)
-              and heading error at 1, 2, 4, 6, 8 s.
+              from their log in the log's own frame (lateral: left positive;
+              longitudinal: ahead positive), heading error, and speed minus
+              the log's for the agents the log has moving (> 2 m/s), at 1,
+              2, 4, 6, 8 s. A negative speed mean that grows with time is a
+              policy that slows down in closed loop.
 parked        open-loop plans for the vehicles parked in the log (path under
               0.5 m over the 8 s after t, valid for half of them): the end
               displacement of `--samples` plans per agent made at t, cold
@@ -50,6 +53,7 @@ from pcdiff_jax.sim.datatypes import Action, ObjectType
 
 PLANS = ("log", "log-latent", "top1", "top1-latent", "oracle", "sample", "sample-guided")
 DRIFT_SECONDS = (1, 2, 4, 6, 8)
+MOVING_SPEED = 2.0   # m/s: drift's speed column covers the agents the log has moving faster
 
 
 def _scenes(path: str, num: int):
@@ -154,19 +158,28 @@ def drift(args, models, cfg, batch, num) -> dict:
   yaw = np.asarray(log.yaw)
   dx, dy = np.asarray(sim.x - log.x), np.asarray(sim.y - log.y)
   lateral = -np.sin(yaw) * dx + np.cos(yaw) * dy
+  longitudinal = np.cos(yaw) * dx + np.sin(yaw) * dy
+  speed = lambda tr: np.hypot(np.asarray(tr.vel_x), np.asarray(tr.vel_y))
+  log_speed = speed(log)
+  speed_diff = speed(sim) - log_speed
   heading = (np.asarray(sim.yaw - log.yaw) + np.pi) % (2 * np.pi) - np.pi
   start = ecfg.init_steps - 1
   rows = {}
   for sec in DRIFT_SECONDS:
     t = start + int(round(sec / cfg.kinematics.dt))
     m = ok[..., t]
+    moving = m & (log_speed[..., t] > MOVING_SPEED)
     rows[f"{sec}s"] = dict(lateral_mean=float(lateral[..., t][m].mean()),
                            lateral_abs=float(np.abs(lateral[..., t][m]).mean()),
+                           longitudinal_mean=float(longitudinal[..., t][m].mean()),
                            heading_mean=float(heading[..., t][m].mean()),
-                           heading_abs=float(np.abs(heading[..., t][m]).mean()), agents=int(m.sum()))
+                           heading_abs=float(np.abs(heading[..., t][m]).mean()), agents=int(m.sum()),
+                           speed_diff_mean=float(speed_diff[..., t][moving].mean()) if moving.any() else float("nan"),
+                           moving_agents=int(moving.sum()))
     r = rows[f"{sec}s"]
-    print(f"| {sec} s | {r['lateral_mean']:+.2f} | {r['lateral_abs']:.2f} | {r['heading_mean']:+.3f} | "
-          f"{r['heading_abs']:.3f} | {r['agents']} |", flush=True)
+    print(f"| {sec} s | {r['lateral_mean']:+.2f} | {r['lateral_abs']:.2f} | {r['longitudinal_mean']:+.2f} | "
+          f"{r['heading_mean']:+.3f} | {r['heading_abs']:.3f} | {r['agents']} | {r['speed_diff_mean']:+.2f} | "
+          f"{r['moving_agents']} |", flush=True)
   return rows
 
 
@@ -299,7 +312,8 @@ def main(argv=None) -> None:
   except (FileNotFoundError, ValueError) as err:
     p.error(str(err))
   headers = {"replay": "| plan | collision | off-road | realism W1 | minADE |",
-             "drift": "| time | lateral mean (m, left +) | lateral abs | heading mean (rad) | heading abs | agents |",
+             "drift": ("| time | lateral mean (m, left +) | lateral abs | longitudinal mean (m, ahead +) | "
+                       "heading mean (rad) | heading abs | agents | speed - log's (m/s) | moving agents |"),
              "first-action": "| plan | yaw rate mean (rad/s) | yaw rate abs | accel mean (m/s^2) | agents |",
              "parked": "| plans of parked vehicles | median end (m) | share > 1 m | share > 5 m | agents |"}
   print(headers[args.section])
