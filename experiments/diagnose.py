@@ -159,9 +159,8 @@ def drift(args, models, cfg, batch, num) -> dict:
   dx, dy = np.asarray(sim.x - log.x), np.asarray(sim.y - log.y)
   lateral = -np.sin(yaw) * dx + np.cos(yaw) * dy
   longitudinal = np.cos(yaw) * dx + np.sin(yaw) * dy
-  speed = lambda tr: np.hypot(np.asarray(tr.vel_x), np.asarray(tr.vel_y))
-  log_speed = speed(log)
-  speed_diff = speed(sim) - log_speed
+  log_speed = np.asarray(log.speed)
+  speed_diff = np.asarray(sim.speed) - log_speed
   heading = (np.asarray(sim.yaw - log.yaw) + np.pi) % (2 * np.pi) - np.pi
   start = ecfg.init_steps - 1
   rows = {}
