@@ -349,8 +349,9 @@ class SceneEncoder(nn.Module):
                                 name="head")(head_in, speed)
     basis, deriv = bezier_basis(cfg.bezier_degree, cfg.horizon)
     ctrl = jnp.where(av[:, None, None, None], ctrl, 0.0)              # padded agents stand still
-    traj = jnp.einsum("ts,aksc->aktc", basis, ctrl)                  # (A, K, T, 2)
-    vel = jnp.einsum("ts,aksc->aktc", deriv, ctrl)                   # (A, K, T, 2)
+    exact = jax.lax.Precision.HIGHEST   # metres: a GPU's TF32 default would round them by centimetres
+    traj = jnp.einsum("ts,aksc->aktc", basis, ctrl, precision=exact)  # (A, K, T, 2)
+    vel = jnp.einsum("ts,aksc->aktc", deriv, ctrl, precision=exact)   # (A, K, T, 2)
     return EncoderOutput(
         agent_tokens=agent_tokens, agent_valid=av, map_tokens=map_tokens, map_valid=mv,
         trajectories=traj, yaws=_heading(vel), control_points=ctrl, logits=logits,

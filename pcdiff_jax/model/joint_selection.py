@@ -39,10 +39,12 @@ def collision_counts(xy: Array, yaw: Array, length: Array, width: Array, valid: 
     # One (P, P) matrix per circle pair, squared distances as a matmul (|a|^2 + |b|^2 - 2 a.b):
     # a broadcast difference tensor was ~20x slower on CPU, one (3P, 3P) matrix reduced over
     # its circle axes 1.5x slower, and using (j, i) = (i, j)^T no faster.
+    # Full float32 products: at a GPU's default (TF32) precision a.b is off by metres^2 here.
     sq = jnp.sum(ct ** 2, -1)                                              # (P, 3)
     for i in range(3):
       for j in range(3):
-        hits = hits + (sq[:, i, None] + sq[None, :, j] - 2.0 * ct[:, i] @ ct[:, j].T < rr2)
+        dot = jnp.matmul(ct[:, i], ct[:, j].T, precision=jax.lax.Precision.HIGHEST)
+        hits = hits + (sq[:, i, None] + sq[None, :, j] - 2.0 * dot < rr2)
     return hits, None
 
   hits, _ = jax.lax.scan(per_step, jnp.zeros((num * k, num * k), jnp.int32), c)

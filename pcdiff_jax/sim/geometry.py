@@ -5,6 +5,7 @@ friendly (no data-dependent shapes).
 """
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 from jax import Array
@@ -74,8 +75,11 @@ def pairwise_box_overlap(x: Array, y: Array, yaw: Array, length: Array, width: A
       jnp.broadcast_to(axes[..., :, None, :, :], batch + (n, n, 2, 2)),
       jnp.broadcast_to(axes[..., None, :, :, :], batch + (n, n, 2, 2)),
   ], axis=-2)                                          # (..., N, N, 4, 2)
-  proj_i = jnp.einsum("...ijad,...icd->...ijac", axes_ij, corners)  # (..., N, N, 4, 4)
-  proj_j = jnp.einsum("...ijad,...jcd->...ijac", axes_ij, corners)  # (..., N, N, 4, 4)
+  # Full float32 products: a GPU's default (TF32) matmul rounds these world-frame projections
+  # by decimetres, which turned gaps between boxes into overlaps (45% collisions on val).
+  exact = jax.lax.Precision.HIGHEST
+  proj_i = jnp.einsum("...ijad,...icd->...ijac", axes_ij, corners, precision=exact)  # (..., N, N, 4, 4)
+  proj_j = jnp.einsum("...ijad,...jcd->...ijac", axes_ij, corners, precision=exact)  # (..., N, N, 4, 4)
   separated = (proj_i.max(-1) <= proj_j.min(-1)) | (proj_j.max(-1) <= proj_i.min(-1))
   return ~jnp.any(separated, axis=-1)
 
