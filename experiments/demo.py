@@ -33,7 +33,7 @@ from pcdiff_jax.config import get_config
 
 METHODS = ("pcdiff", "simpl-ar", "idm", "cv")
 LABELS = {"pcdiff": ("ours (prior, 5 DDIM steps, then warm-started; "
-                     "4 samples, the least colliding and off-road kept)"),
+                     "8 samples, the least colliding and off-road kept)"),
           "simpl-ar": "SIMPL-AR", "idm": "IDM", "cv": "constant velocity"}
 
 

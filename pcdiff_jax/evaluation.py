@@ -100,7 +100,7 @@ class EvalConfig:
   warm_ddim_steps: int = 1
   temporal_ensemble: tuple[float, float] = (0.7, 0.0)
   simpl_ar_sample: bool = False
-  select_samples: int = 4
+  select_samples: int = 8
   select_map_weight: float = 30.0
   select_stride: int = 3
   select_proposal_weight: float = 0.0

@@ -134,10 +134,15 @@ class PolicyConfig:
   (docs/BENCHMARKS.md). With consistent_noise,
   sample 0 starts from each object's fixed noise and sample k from the fixed
   noise of the agent k slots further (the plan stays a function of the
-  scene). Default 4 since session 8 (docs/RESULTS.md, "Sample selection"): on
-  the first 50 val scenes at 10 Hz, S = 1 / 2 / 4 / 8 gave 10.7 / 6.0 / 4.3 /
+  scene). 4 from session 8 (docs/RESULTS.md, "Sample selection"): on the
+  first 50 val scenes at 10 Hz, S = 1 / 2 / 4 / 8 gave 10.7 / 6.0 / 4.3 /
   4.3% collisions and 7.1 / 6.6 / 6.1 / 6.2% off-road at the same realism and
-  minADE.
+  minADE. Default 8 since session 18 (docs/RESULTS.md, "Session 18"): with
+  today's map term and warm replans, v8, all 200 val scenes, 3 seeds, S = 4
+  / 8 gave 2.71 / 2.39% collisions and 1.61 / 1.15% off-road, and the test
+  split (first 100 scenes, 3 seeds) 2.76 / 2.47 and 2.19 / 1.45, same realism
+  and minADE; 26.5 against 32.4 ms per 65-agent closed-loop step on 2 CPU
+  cores.
 
   select_map_weight: with S > 1, each sample also costs this weight times its
   J_map over the lookahead (`guidance.map_cost`: mean squared excursion of the
@@ -221,7 +226,7 @@ class PolicyConfig:
   ensemble_brake_weight: Optional[float] = None
   ensemble_brake_margin: float = 0.0
   ensemble_pass: str = "brake"
-  select_samples: int = 4
+  select_samples: int = 8
   select_lookahead: int = 30
   select_map_weight: float = 30.0
   select_stride: int = 3
