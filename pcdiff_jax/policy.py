@@ -141,8 +141,8 @@ class PolicyConfig:
   today's map term and warm replans, v8, all 200 val scenes, 3 seeds, S = 4
   / 8 gave 2.71 / 2.39% collisions and 1.61 / 1.15% off-road, and the test
   split (first 100 scenes, 3 seeds) 2.76 / 2.47 and 2.19 / 1.45, same realism
-  and minADE; 26.5 against 32.4 ms per 65-agent closed-loop step on 2 CPU
-  cores.
+  and minADE; about 28 against 34 ms per 65-agent closed-loop step on 2 CPU
+  cores (docs/BENCHMARKS.md, "Eight samples").
 
   select_map_weight: with S > 1, each sample also costs this weight times its
   J_map over the lookahead (`guidance.map_cost`: mean squared excursion of the
