@@ -39,7 +39,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="steps between plans (guided plans cost several gradient passes on CPU)")
   p.add_argument("--w-map", type=float, default=None,
                  help="weight of J_map (default: 100 for objective guidance, 1 for adversarial)")
-  p.add_argument("--w-coll", type=float, default=GuidanceConfig.w_coll)
+  p.add_argument("--w-coll", type=float, default=None,
+                 help="weight of J_coll (default: 10 for objective guidance, 1 for adversarial)")
   p.add_argument("--w-pursue", type=float, default=30.0)
   p.add_argument("--eta", type=float, default=0.07)
   p.add_argument("--seed", type=int, default=0)

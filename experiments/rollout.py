@@ -78,6 +78,9 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--select-stride", type=int, default=evaluation.EvalConfig.select_stride,
                  help="pcdiff with --select-samples > 1: score the samples' overlaps and J_map at every "
                       "N-th step of the 3 s lookahead (cheaper; 1 = every step)")
+  p.add_argument("--select-neighbours", type=int, default=evaluation.EvalConfig.select_neighbours,
+                 help="pcdiff with --select-samples > 1: check each agent's samples for overlaps against "
+                      "its N nearest agents' only (a bounding-circle broad phase; 0 = every pair)")
   p.add_argument("--select-proposal-weight", type=float,
                  default=evaluation.EvalConfig.select_proposal_weight,
                  help="pcdiff with --select-samples > 1: also prefer the sample the encoder's proposals "
@@ -108,7 +111,8 @@ def parse_args(argv=None) -> argparse.Namespace:
   g.add_argument("--guidance", default="none", choices=GUIDANCE_MODES)
   g.add_argument("--w-map", type=float, default=None,
                  help="weight of J_map (default: 100 for objective guidance, 1 for adversarial)")
-  g.add_argument("--w-coll", type=float, default=GuidanceConfig.w_coll)
+  g.add_argument("--w-coll", type=float, default=None,
+                 help="weight of J_coll (default: 10 for objective guidance, 1 for adversarial)")
   g.add_argument("--w-pursue", type=float, default=GuidanceConfig.w_pursue)
   g.add_argument("--eta", type=float, default=GuidanceConfig.eta, help="latent step size")
   g.add_argument("--guided-steps", type=int, default=GuidanceConfig.guided_steps,
@@ -137,6 +141,8 @@ def parse_args(argv=None) -> argparse.Namespace:
       p.error(f"--{name.replace('_', '-')} must be >= 1")
   if args.select_map_weight < 0:
     p.error("--select-map-weight must be >= 0")
+  if args.select_neighbours < 0:
+    p.error("--select-neighbours must be >= 0 (0: every pair)")
   if args.select_proposal_weight < 0:
     p.error("--select-proposal-weight must be >= 0")
   if args.select_proposal_scale <= 0:
@@ -195,6 +201,7 @@ def main(argv=None) -> int:
                               ensemble_pass=args.ensemble_pass,
                               simpl_ar_sample=args.simpl_ar_sample, select_samples=args.select_samples,
                               select_map_weight=args.select_map_weight, select_stride=args.select_stride,
+                              select_neighbours=args.select_neighbours,
                               select_proposal_weight=args.select_proposal_weight,
                               select_proposal_scale=args.select_proposal_scale,
                               stop_hold=args.stop_hold,

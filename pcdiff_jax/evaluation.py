@@ -58,7 +58,8 @@ class EvalConfig:
   many joint plans per replan and keep, per agent, the one that collides
   least (`PolicyConfig.select_samples`), select_map_weight: and that leaves
   the road least (`PolicyConfig.select_map_weight`), scored at every
-  select_stride-th step (`PolicyConfig.select_stride`), select_proposal_weight /
+  select_stride-th step (`PolicyConfig.select_stride`) against each agent's
+  select_neighbours nearest (`PolicyConfig.select_neighbours`), select_proposal_weight /
   select_proposal_scale: and that the encoder's proposals make likeliest
   (`PolicyConfig.select_proposal_weight`); jerk_limit: their
   executed acceleration's rate limit (`PolicyConfig.jerk_limit`); warm_proposals:
@@ -103,6 +104,7 @@ class EvalConfig:
   select_samples: int = 8
   select_map_weight: float = 30.0
   select_stride: int = 3
+  select_neighbours: int = 16
   select_proposal_weight: float = 0.0
   select_proposal_scale: float = 1.0
   jerk_limit: tuple[float, float] = (1.5, 5.0)
@@ -162,6 +164,7 @@ def _method_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
                              select_samples=cfg.select_samples,
                              select_map_weight=cfg.select_map_weight,
                              select_stride=cfg.select_stride, jerk_limit=cfg.jerk_limit,
+                             select_neighbours=cfg.select_neighbours,
                              select_proposal_weight=cfg.select_proposal_weight,
                              select_proposal_scale=cfg.select_proposal_scale,
                              warm_proposals=cfg.warm_proposals,
@@ -226,10 +229,11 @@ def pursuer_at_start(final_state, cfg: EvalConfig) -> jax.Array:
 
 
 def _config_record(cfg: EvalConfig) -> dict:
-  """cfg as a dict, with the map weight guidance actually used (w_map=None
-  stands for the mode's default)."""
+  """cfg as a dict, with the map and collision weights guidance actually used
+  (None stands for the mode's default)."""
   record = dataclasses.asdict(cfg)
   record["guidance"]["w_map"] = cfg.guidance.map_weight
+  record["guidance"]["w_coll"] = cfg.guidance.coll_weight
   return record
 
 

@@ -141,8 +141,8 @@ class PolicyConfig:
   today's map term and warm replans, v8, all 200 val scenes, 3 seeds, S = 4
   / 8 gave 2.71 / 2.39% collisions and 1.61 / 1.15% off-road, and the test
   split (first 100 scenes, 3 seeds) 2.76 / 2.47 and 2.19 / 1.45, same realism
-  and minADE; about 28 against 34 ms per 65-agent closed-loop step on 2 CPU
-  cores (docs/BENCHMARKS.md, "Eight samples").
+  and minADE; about 25 against 30 ms per 65-agent closed-loop step on 2 CPU
+  cores since session 19 (docs/BENCHMARKS.md, "Session 19").
 
   select_map_weight: with S > 1, each sample also costs this weight times its
   J_map over the lookahead (`guidance.map_cost`: mean squared excursion of the
@@ -164,6 +164,18 @@ class PolicyConfig:
   lookahead only (overlap counts weighted N times, so the two terms keep
   their balance). Default 3 since session 11 (with warm_ddim_steps 1, above):
   the overlap counts were 7 of the 41 ms of a closed-loop step.
+
+  select_neighbours: with S > 1, each agent's samples are checked for
+  overlaps against those of its N nearest agents only
+  (`joint_selection.near_collision_counts`: a broad phase on the bounding
+  circles of each agent's S samples per step, then the circle tests), not
+  against all of them; 0 checks every pair. The counts are the same as the
+  dense ones for every agent whose (N+1)-th nearest agent cannot reach its
+  samples within the lookahead (648 of 649 agents on the first plans of the
+  real record and 30 val scenes; the real record's closed-loop metrics are
+  identical), for N / A of the circle tests: a 65-agent closed-loop step at
+  S = 8 on 2 CPU cores 28.7 against 30.2 ms. Default 16 since session 19
+  (docs/RESULTS.md, "Session 19").
 
   jerk_limit: (rise, fall) in m/s^3: the executed acceleration moves from the
   one executed at the previous step (read from the simulated speeds) by at
@@ -230,6 +242,7 @@ class PolicyConfig:
   select_lookahead: int = 30
   select_map_weight: float = 30.0
   select_stride: int = 3
+  select_neighbours: int = 16
   select_proposal_weight: float = 0.0
   select_proposal_scale: float = 1.0
   jerk_limit: tuple[float, float] = (1.5, 5.0)
@@ -349,7 +362,8 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
       road_here = jax.tree_util.tree_map(lambda a: a[None], road_here)   # a batch of 1 for map_cost
     y0 = select_sample(y0, models, cond, batched, cfg, policy.select_lookahead, keep,
                        road_here, policy.select_map_weight, policy.guidance, policy.select_stride,
-                       policy.select_proposal_weight, policy.select_proposal_scale)
+                       policy.select_proposal_weight, policy.select_proposal_scale,
+                       policy.select_neighbours)
   actions = dynamics.clip_action(latent.decode(y0[0], models.stats), cfg.kinematics)  # (A, T, 2)
   if policy.execute == "track":   # the world-frame path is only needed to track it
     states = dynamics.rollout(latent.initial_states(cond.speed[0]), actions, cfg.kinematics.dt)
@@ -384,20 +398,26 @@ def select_sample(y0: Array, models: Models, cond: planner.Conditioning, batched
                   lookahead: int, keep: Array, road: Optional[RoadField] = None,
                   map_weight: float = 0.0,
                   guidance: guidance_lib.GuidanceConfig = guidance_lib.GuidanceConfig(),
-                  stride: int = 1, proposal_weight: float = 0.0, proposal_scale: float = 1.0) -> Array:
+                  stride: int = 1, proposal_weight: float = 0.0, proposal_scale: float = 1.0,
+                  neighbours: int = 0) -> Array:
   """(1, A, d): per agent, one of the S joint samples y0 (S, A, d) of one scene
   (cond, batched: that scene repeated S times) such that the chosen plans
   overlap least over their first `lookahead` steps, every `stride`-th (`PolicyConfig.select_samples`),
   plus map_weight x each sample's J_map on `road` (the scene's field in the
   scene frame) when map_weight > 0, plus proposal_weight x its
   `proposal_nll` (scale `proposal_scale` m) when proposal_weight > 0; agents
-  where keep (A,) keep sample 0."""
+  where keep (A,) keep sample 0. neighbours > 0: overlaps against each
+  agent's that many nearest agents only (`PolicyConfig.select_neighbours`)."""
   states = planner.decode_states(models.stats, cond, y0, cfg)[..., :lookahead:stride, :]   # (S, A, L, 4)
   xy, yaw = planner.to_scene(states, batched)
   feats = jax.tree_util.tree_map(lambda a: a[0], batched)
   length, width = planner.agent_size(feats)
-  coll = joint_selection.collision_counts(jnp.moveaxis(xy, 0, 1), jnp.moveaxis(yaw, 0, 1),
-                                          length, width, feats.agent_valid)   # (A, S, A, S)
+  xy_a, yaw_a = jnp.moveaxis(xy, 0, 1), jnp.moveaxis(yaw, 0, 1)                  # (A, S, L, ...)
+  if neighbours > 0:
+    coll, others, _ = joint_selection.near_collision_counts(xy_a, yaw_a, length, width,
+                                                            feats.agent_valid, neighbours)   # (A, S, N, S)
+  else:
+    coll, others = joint_selection.collision_counts(xy_a, yaw_a, length, width, feats.agent_valid), None
   num = feats.agent_valid.shape[0]
   unary = jnp.zeros((num, y0.shape[0]))
   if map_weight > 0:
@@ -416,7 +436,7 @@ def select_sample(y0: Array, models: Models, cond: planner.Conditioning, batched
   # Overlaps counted at every stride-th step weigh stride times: the same scale against J_map
   # (a mean over the steps) as with every step.
   choice = joint_selection.iterated_conditional_modes(
-      unary, coll, feats.agent_valid & ~keep, float(stride), sweeps=2, order=jnp.arange(num))
+      unary, coll, feats.agent_valid & ~keep, float(stride), sweeps=2, order=jnp.arange(num), others=others)
   return jnp.take_along_axis(y0, choice[None, :, None], axis=0)
 
 
@@ -583,6 +603,8 @@ def validate(cfg: Config, policy: PolicyConfig) -> None:
     raise ValueError(f"jerk_limit must be two limits >= 0 in m/s^3 (rise, fall), got {policy.jerk_limit}")
   if not 1 <= policy.select_stride <= policy.select_lookahead:
     raise ValueError(f"select_stride must be in [1, select_lookahead], got {policy.select_stride}")
+  if policy.select_neighbours < 0:
+    raise ValueError(f"select_neighbours must be >= 0 (0: every pair), got {policy.select_neighbours}")
   if policy.select_map_weight < 0:
     raise ValueError(f"select_map_weight must be >= 0, got {policy.select_map_weight}")
   if policy.select_proposal_weight < 0:

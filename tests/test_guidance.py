@@ -163,3 +163,18 @@ def test_map_weight_defaults_per_mode_and_an_explicit_weight_wins():
   assert G.GuidanceConfig(mode="objective", w_map=3.0).map_weight == 3.0
   with pytest.raises(ValueError, match="w_map"):
     G.GuidanceConfig(mode="objective", w_map=-1.0).validate()
+
+
+def test_collision_weight_defaults_per_mode_and_weighs_the_objective():
+  assert G.GuidanceConfig(mode="objective").coll_weight == 10.0        # session 19's choice
+  assert G.GuidanceConfig(mode="adversarial").coll_weight == 1.0       # Table III's setting
+  assert G.GuidanceConfig(mode="objective", w_coll=0.5).coll_weight == 0.5
+  with pytest.raises(ValueError, match="w_coll"):
+    G.GuidanceConfig(mode="objective", w_coll=-1.0).validate()
+  base = _straight([-1.5, 1.5, -1.5], [10.0, 10.0, 10.0], [0.0, 0.0, -60.0])
+  stacked = _poses(base)(jnp.array([[0.0, 2.0], [0.0, 0.0], [0.0, 0.0]]))   # agents 0, 1 touching
+  agents, road = _agents(), _road()
+  coll = G.collision_cost(*stacked, agents, CFG)
+  cost = lambda cfg: G.objective(*stacked, agents, road, cfg)
+  default = dataclasses.replace(CFG, w_coll=None)
+  np.testing.assert_allclose(cost(default) - cost(dataclasses.replace(CFG, w_coll=0.0)), 10.0 * coll, rtol=1e-5)

@@ -70,22 +70,29 @@ def step_embedding(s: Array, dim: int) -> Array:
   return jnp.concatenate([jnp.sin(angles), jnp.cos(angles)], -1)
 
 
-def _attend(q: Array, k: Array, v: Array, mask: Array, heads: int) -> Array:
-  """q (Q, d); k, v (Q, S, d) or (S, d); mask (Q, S) -> (Q, d)."""
+def _attend(q: Array, k: Array, v: Array, mask: Array, heads: int,
+            edge_k: Optional[Array] = None, edge_v: Optional[Array] = None) -> Array:
+  """q (Q, d); k, v (S, d) shared by every receiver, or (Q, S, d) each
+  receiver's own; mask (Q, S) -> (Q, d). edge_k, edge_v (Q, S, d): per-pair
+  terms added to the keys and values (the relative pose edges), as
+  q.k_j + q.e_ij and sum_j w_ij v_j + sum_j w_ij e'_ij: the (Q, S, d) sums
+  are never formed, which made one denoiser call over 8 samples of 65 agents
+  1.3x faster on a CPU (session 19)."""
   d = q.shape[-1]
   hd = d // heads
   split = lambda x: x.reshape(x.shape[:-1] + (heads, hd))
-  qh = split(q)                                                       # (Q, H, hd)
-  kh, vh = split(k), split(v)
-  if kh.ndim == 3:                                                    # shared senders
-    logits = jnp.einsum("qhc,shc->qhs", qh, kh)
-  else:
-    logits = jnp.einsum("qhc,qshc->qhs", qh, kh)
+  qh, kh, vh = split(q), split(k), split(v)                           # (Q, H, hd), ([Q,] S, H, hd)
+  shared = kh.ndim == 3
+  logits = jnp.einsum("qhc,shc->qhs" if shared else "qhc,qshc->qhs", qh, kh)
+  if edge_k is not None:
+    logits = logits + jnp.einsum("qhc,qshc->qhs", qh, split(edge_k))
   logits = logits / math.sqrt(hd)
   logits = jnp.where(mask[:, None, :], logits, _NEG)
   w = jax.nn.softmax(logits, -1)
   w = jnp.where(jnp.any(mask, -1)[:, None, None], w, 0.0)            # no sender: zero update
-  out = jnp.einsum("qhs,shc->qhc", w, vh) if vh.ndim == 3 else jnp.einsum("qhs,qshc->qhc", w, vh)
+  out = jnp.einsum("qhs,shc->qhc" if shared else "qhs,qshc->qhc", w, vh)
+  if edge_v is not None:
+    out = out + jnp.einsum("qhs,qshc->qhc", w, split(edge_v))
   return out.reshape(q.shape)
 
 
@@ -148,9 +155,8 @@ class DenoiserLayer(nn.Module):
     drop = lambda x: self.drop(x, deterministic=deterministic)
     # 1. Agents attend to agents, keys/values shifted by the relative pose edge.
     x = self.ln_self(h)
-    k = self.self_k(x)[None] + c.edge_k                                  # (A, A, d)
-    v = self.self_v(x)[None] + c.edge_v
-    h = h + drop(self.self_o(_attend(self.self_q(x), k, v, masks.agent_mask, self.num_heads)))
+    h = h + drop(self.self_o(_attend(self.self_q(x), self.self_k(x), self.self_v(x), masks.agent_mask,
+                                     self.num_heads, c.edge_k, c.edge_v)))
     # 2. Agents attend to the scene context.
     x = self.ln_ctx(h)
     mask = jnp.broadcast_to(masks.ctx_mask[None], (h.shape[0], masks.ctx_mask.shape[0]))
