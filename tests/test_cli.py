@@ -52,7 +52,8 @@ def test_rollout_cli_bad_arguments(tmp_path, capsys):
   with pytest.raises(SystemExit) as err:
     rollout.main(["--scenarios", "x", "--out", str(tmp_path), "--start-gate", "2", "-1"])
   assert err.value.code == 2 and "--start-gate takes SECONDS METRES >= 0" in capsys.readouterr().err
-  for flag, value, message in (("--select-proposal-weight", "-1", "must be >= 0"),
+  for flag, value, message in (("--select-neighbours", "-1", "must be >= 0 (0: every pair)"),
+                               ("--select-proposal-weight", "-1", "must be >= 0"),
                                ("--select-proposal-scale", "0", "must be > 0 (m)")):
     with pytest.raises(SystemExit) as err:
       rollout.main(["--scenarios", "x", "--out", str(tmp_path), flag, value])

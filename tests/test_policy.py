@@ -459,6 +459,8 @@ def test_sample_selection_keeps_the_least_colliding_joint_plan(models):
     policy.actor(CFG, policy.PolicyConfig(select_samples=0))
   with pytest.raises(ValueError, match="select_stride"):
     policy.actor(CFG, policy.PolicyConfig(select_stride=31))
+  with pytest.raises(ValueError, match="select_neighbours"):
+    policy.actor(CFG, policy.PolicyConfig(select_neighbours=-1))
 
 
 def test_warm_proposals_start_samples_from_the_most_likely_proposals(models):
