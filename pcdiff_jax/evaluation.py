@@ -249,6 +249,7 @@ def pad_batch(state, size: int):
 # Metrics reported as mean and std over seeds, with their Table-I labels.
 HEADLINE = (("collision_rate", "collision (%)", 100.0), ("offroad_rate", "off-road (%)", 100.0),
             ("realism", "realism (W1)", 1.0), ("min_ade", "minADE (m)", 1.0),
+            ("still_moved_rate", "still moved (%)", 100.0),
             ("runtime_ms_per_replan", "runtime / replan (ms)", 1.0))
 
 
@@ -267,7 +268,8 @@ def _markdown(summary: dict) -> str:
             f"{100 * r['start_offroad_fraction']:.2f}%; of the off-road rate, "
             f"{100 * r['offroad_past_log_rate']:.2f} points are vehicles that left the road only "
             f"after their log had ended. Evaluated agents per seed: "
-            f"{int(r['num_evaluated'])} (vehicles {int(r['num_vehicles'])}); skipped scenarios: "
+            f"{int(r['num_evaluated'])} (vehicles {int(r['num_vehicles'])}; still in the log, moving < 1 m: "
+            f"{int(r['num_still_agents'])}); skipped scenarios: "
             f"{len(summary['skipped'])}. Controlled agents lost mid-rollout: {summary['lost_agents']} of "
             f"{summary['controlled_agents']} (all seeds); objects following their log: "
             f"{summary['log_following_agents']}. Runtime: one jitted closed-loop call over "
@@ -356,7 +358,8 @@ def evaluate(scenarios: Sequence[str] | str, out_dir: str, cfg: EvalConfig,
                  "seed": seed}
           row.update({k: v for k, v in metrics_lib.aggregate(one).items()
                       if k in ("collision_rate", "offroad_rate", "min_ade", "num_evaluated",
-                               "lost_agents", "log_following_agents")})
+                               "lost_agents", "log_following_agents", "still_moved_rate",
+                               "num_still_agents")})
           per_scenario.write(json.dumps(row) + "\n")
           per_scenario.flush()
           if gifs_done < cfg.gifs:

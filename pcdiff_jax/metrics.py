@@ -7,12 +7,20 @@ Per rolled-out scenario (`score_rollout`, jit-able, vmap over scenarios):
   (after the start step), of the rollout and of the log for the same agents
   and steps, on the fixed bin edges of `data.realism.FIXED_BIN_EDGES`;
 - each evaluated agent's ADE to its log over the simulated steps where both
-  are valid.
+  are valid;
+- still agents moved (`still_moved`): an evaluated agent is *still* when its
+  log stays within `STILL_LOG_M` (1 m) of its start position (the log's at
+  the start step) at every valid logged step of the window (start step to
+  start + num_steps); it *moved* when its simulated position is more than
+  `MOVED_SIM_M` (2 m) from that start position at some valid simulated step
+  of the window. Parked and queued cars must not be driven away.
 
 Aggregated (`aggregate`, host side): collision rate, off-road rate, realism =
 the mean over the three quantities of W1 between the L1-normalised histograms
 (generated vs logged, summed over all scenarios first), minADE = the mean over
-agents of the smallest ADE over the N stochastic rollouts of a scenario.
+agents of the smallest ADE over the N stochastic rollouts of a scenario,
+still_moved_rate = moved still agents / still agents over every rollout (0
+for log replay by construction).
 
 Adversarial runs add (`adversarial_scores`, `aggregate_adversarial`): the
 ego-adversary collision rate (their boxes overlap at a simulated step), the
@@ -35,6 +43,8 @@ from pcdiff_jax.sim.datatypes import Array, SimulatorState
 from pcdiff_jax.sim.selection import nearest_to_sdc
 
 REALISM_QUANTITIES = ("lon_accel", "lat_accel", "jerk")
+STILL_LOG_M = 1.0   # m: an agent is still when its log stays this close to its start position
+MOVED_SIM_M = 2.0   # m: a still agent moved when the rollout takes it this far from it
 
 
 @struct.dataclass
@@ -48,6 +58,8 @@ class RolloutScores:
   lost: (O,) of those, the ones invalid at a later simulated step (an actor
   that drops an agent makes it vanish: it must stay 0); log_following: (O,)
   objects valid at the start that no actor controlled (they replay the log).
+  still: (O,) evaluated agents still in the log; still_moved: (O,) of those,
+  the ones moved more than 2 m in closed loop (`still_moved`).
   """
   events: sim_metrics.EventCounts
   hist_sim: Array
@@ -57,6 +69,8 @@ class RolloutScores:
   controlled: Array
   lost: Array
   log_following: Array
+  still: Array
+  still_moved: Array
   adversarial: Optional["AdversarialScores"] = None
 
 
@@ -136,6 +150,29 @@ def evaluated_agents(final_state: SimulatorState, start_step: int, max_agents: i
   return nearest_to_sdc(final_state.replace(timestep=jnp.int32(start_step)), max_agents)
 
 
+def still_moved(final_state: SimulatorState, start_step: int, num_steps: int,
+                evaluated: Array) -> tuple[Array, Array]:
+  """(O,) still agents and (O,) those of them moved, of one scenario.
+
+  Over the steps start_step .. start_step + num_steps: still = evaluated,
+  valid at the start, and its logged position within STILL_LOG_M of the
+  log's start position at every valid logged step (max displacement < 1 m);
+  moved = still and its simulated position more than MOVED_SIM_M from that
+  start position at some valid simulated step (max displacement > 2 m).
+  evaluated: (O,) bool. Log replay moves none by construction.
+  """
+  sim, log = final_state.sim_trajectory, final_state.log_trajectory
+  t = jnp.arange(sim.num_timesteps)
+  window = (t >= start_step) & (t <= start_step + num_steps)               # (T,)
+  start_xy = log.xy[:, start_step]                                          # (O, 2)
+  log_disp = jnp.linalg.norm(log.xy - start_xy[:, None], axis=-1)           # (O, T)
+  sim_disp = jnp.linalg.norm(sim.xy - start_xy[:, None], axis=-1)
+  log_max = jnp.max(jnp.where(log.valid & window, log_disp, 0.0), -1)
+  sim_max = jnp.max(jnp.where(sim.valid & window, sim_disp, 0.0), -1)
+  still = evaluated & log.valid[:, start_step] & (log_max < STILL_LOG_M)
+  return still, still & (sim_max > MOVED_SIM_M)
+
+
 def score_rollout(final_state: SimulatorState, start_step: int, num_steps: int, max_agents: int,
                   max_road_edge_points: int) -> RolloutScores:
   """Scores of one rolled-out scenario (unbatched; vmap for batches)."""
@@ -153,10 +190,12 @@ def score_rollout(final_state: SimulatorState, start_step: int, num_steps: int, 
   ade = jnp.sum(jnp.where(both, dist, 0.0), -1) / jnp.maximum(count, 1)
   controlled, lost = lost_agents(final_state, start_step, num_steps)
   at_start = sim.valid[:, start_step]
+  still, moved = still_moved(final_state, start_step, num_steps, evaluated & at_start)
   return RolloutScores(events=events, hist_sim=_hist_counts(sim, mask),
                        hist_log=_hist_counts(log, mask), ade=ade, ade_valid=count > 0,
                        controlled=controlled, lost=lost,
-                       log_following=at_start & ~final_state.object_metadata.is_controlled)
+                       log_following=at_start & ~final_state.object_metadata.is_controlled,
+                       still=still, still_moved=moved)
 
 
 def lost_agents(final_state: SimulatorState, start_step: int, num_steps: int) -> tuple[Array, Array]:
@@ -198,6 +237,9 @@ def aggregate(scores: RolloutScores) -> dict[str, float]:
   out["controlled_agents"] = int(np.sum(scores.controlled))
   out["lost_agents"] = int(np.sum(scores.lost))
   out["log_following_agents"] = int(np.sum(scores.log_following))
+  num_still = int(np.sum(scores.still))
+  out["num_still_agents"] = num_still
+  out["still_moved_rate"] = float(np.sum(scores.still_moved)) / num_still if num_still else float("nan")
   if scores.adversarial is not None:
     out.update(aggregate_adversarial(scores.adversarial))
   return out

@@ -112,3 +112,26 @@ def test_adversarial_scores_of_a_rear_end_pursuit():
   agg = metrics_lib.aggregate_adversarial(jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), s, none))
   assert agg["num_pairs"] == 1 and agg["ego_adv_collision_rate"] == 1.0
   assert agg["impact_speed"] == pytest.approx(10.0, abs=1e-3)
+
+
+def test_still_moved_rate_counts_still_agents_driven_away():
+  """Objects 2 and 3 stand still in the log; the rollout moves 2 by 3 m
+  (counts) and 3 by 1.5 m (does not); the movers are not still. Log replay: 0."""
+  from pcdiff_jax import metrics as metrics_lib
+  state = make_scene(speeds=(10.0, 8.0, 0.0, 0.0), xs=(0.0, 0.0, 10.0, -30.0))
+  t = jnp.arange(state.log_trajectory.num_timesteps)
+  sim = state.log_trajectory
+  sim = sim.replace(x=sim.x.at[2].add(jnp.where(t > 5, 3.0, 0.0)).at[3].add(jnp.where(t > 5, 1.5, 0.0)))
+  start, steps = 5, 20
+  final = state.replace(sim_trajectory=sim, timestep=jnp.int32(start + steps))
+  evaluated = metrics_lib.evaluated_agents(final, start, 3)
+  still, moved = metrics_lib.still_moved(final, start, steps, evaluated)
+  assert still.tolist() == [False, False, True, True]
+  assert moved.tolist() == [False, False, True, False]
+  score = jax.jit(metrics_lib.score_rollout, static_argnums=(1, 2, 3, 4))
+  batch = lambda s: jax.tree_util.tree_map(lambda a: np.asarray(a)[None, None], s)
+  out = metrics_lib.aggregate(batch(score(final, start, steps, 3, 256)))
+  assert out["num_still_agents"] == 2 and out["still_moved_rate"] == 0.5
+  replay = state.replace(timestep=jnp.int32(start + steps))
+  out = metrics_lib.aggregate(batch(score(replay, start, steps, 3, 256)))
+  assert out["num_still_agents"] == 2 and out["still_moved_rate"] == 0.0
