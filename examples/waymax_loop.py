@@ -8,8 +8,10 @@ Waymax's `MultiAgentEnvironment` steps every object valid at t = 10 with the
 chosen dynamics model; our policy (the shipped model) drives the 64 agents
 nearest the SDC, Waymax's expert actor every other object (the SDC included)
 along its log. `policy.waymax_actor` converts the plan's [a, psi_dot] into the
-environment's action space. Prints Waymax's own overlap / off-road metrics at
-the end. Exits 2 with a clear message when Waymax is not installed.
+environment's action space and returns Waymax's own `WaymaxActorOutput` /
+`Action`, so `agents.merge_actions` takes it as it is. Prints Waymax's own
+overlap / off-road metrics at the end. Exits 2 with a clear message when
+Waymax is not installed.
 """
 from __future__ import annotations
 
@@ -34,7 +36,7 @@ def parse_args(argv=None):
 def main(argv=None) -> int:
   args = parse_args(argv)
   try:
-    from waymax import agents, config as wconfig, dataloader, datatypes, dynamics as wdynamics, env as wenv
+    from waymax import agents, config as wconfig, dataloader, dynamics as wdynamics, env as wenv
   except ImportError as err:
     print(f"error: waymax is not importable ({err}); install it from its repository: "
           "pip install git+https://github.com/waymo-research/waymax", file=sys.stderr)
@@ -73,9 +75,7 @@ def main(argv=None) -> int:
 
   @jax.jit
   def step(state, actor_state, rng):
-    mine = ours.select_action(models, state, actor_state, rng)
-    # Same fields, but Waymax's own pytree class, so that merge_actions can tree_map the two.
-    mine = mine.replace(action=datatypes.Action(data=mine.action.data, valid=mine.action.valid))
+    mine = ours.select_action(models, state, actor_state, rng)   # Waymax's WaymaxActorOutput / Action
     log = expert.select_action({}, state, None, None)
     action = agents.merge_actions([log, mine])                   # later outputs win where they control
     return env.step(state, action), mine.actor_state

@@ -569,8 +569,11 @@ def waymax_actor(cfg: Config, policy: PolicyConfig, dynamics_model) -> Actor:
   "delta_local", "delta_global"), or our `KinematicModel` / "accel_yaw_rate"
   (then it is `actor`). Each step's planned action [a, psi_dot] is converted
   from the pose it leads to (`sim.action_spaces`); no argument defaults, so
-  the action space is always chosen on purpose."""
-  return action_spaces.adapt(actor(cfg, policy), dynamics_model, cfg.kinematics)
+  the action space is always chosen on purpose. With Waymax importable its
+  output is Waymax's `WaymaxActorOutput` / `Action`, so it goes straight into
+  `waymax.agents.merge_actions` (`sim.waymax_interop`)."""
+  from pcdiff_jax.sim import waymax_interop
+  return waymax_interop.as_waymax_actor(action_spaces.adapt(actor(cfg, policy), dynamics_model, cfg.kinematics))
 
 
 def validate(cfg: Config, policy: PolicyConfig) -> None:
