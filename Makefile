@@ -31,8 +31,15 @@ install: $(VENV)/.installed
 demo: install   # scenes -> both training stages -> closed-loop table of ours and the baselines
 	$(PY) -m experiments.demo --out $(DEMO_OUT)
 
+# `make test`: every test not marked slow (the end-to-end runs), for a fast local loop; with CI=true or 1
+# (CI's .ci/run calls make test) and in `make test-all`, the whole suite (docs/DEVELOPING.md).
+PYTEST = $(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile
+.PHONY: test-all
 test: install
-	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile
+	$(PYTEST) $(if $(filter true 1,$(CI)),,-m "not slow")
+
+test-all: install
+	$(PYTEST)
 
 data: install   # the built-in dataset (docs/DATA.md): 2000 train + 200 val scenes in data/synth
 	$(PY) -m experiments.make_data --out data/synth --num-train 2000 --num-val 200 --seed 0
