@@ -23,10 +23,10 @@ decode (latent -> actions -> rollout with f); its scaling with the padded
 agent count (8-128), DDIM steps and scenarios per call (vmap); and the
 80-step closed loop as one fused `lax.scan` against a Python loop calling the
 jitted step. These rows plan with one sample (`select_samples=1`); the
-default sample selection (S = 8 since session 18) gets its own rows: a cold
+default sample selection (S = 8) gets its own rows: a cold
 replanning (`replan_select8`) and the 80-step closed loop with every default
 (`fused_default_ms_per_step`; without selection's map term, with one sample and
-with session 15's four samples too), the actor's state made once per scenario outside the timed loop (its road
+with four samples too), the actor's state made once per scenario outside the timed loop (its road
 field: `default_actor_init_ms`). Compile time is excluded and reported separately.
 
 `devices`: data-parallel training steps/s (the stage-1 step, the preset's
@@ -253,8 +253,8 @@ def bench_fused_vs_loop(state, cfg, num_steps: int, repeats: int) -> dict:
          "loop_ms_per_step": 1000 * float(np.median(loop_times)) / num_steps,
          "fused_warm_start_ms_per_step": warm_t["ms"] / num_steps}
   # The default policy (warm start, temporal ensemble, sample selection with its map term), it
-  # without the map term, without selection and with 4 samples (the default before session 18). The actor's state (the road field of the map
-  # term) is made once per scenario, outside: its cost is its own row.
+  # without the map term, without selection and with 4 samples (docs/RESULTS.md, "Ablation: samples per
+  # replan"). The actor's state (the road field of the map term) is made once per scenario, outside: its cost is its own row.
   default = policy.PolicyConfig()
   for name, pcfg in (("fused_default_ms_per_step", default),
                      ("fused_default_nomap_ms_per_step", dataclasses.replace(default, select_map_weight=0.0)),

@@ -1,4 +1,4 @@
-"""Closed-loop diagnostics behind docs/RESULTS.md ("why ours is not ahead").
+"""Closed-loop diagnostics: why a policy leaves its log (replay, drift, first action, parked cars).
 
   python -m experiments.diagnose --checkpoint runs/cpu --scenarios runs/val20.tfrecord replay
   python -m experiments.diagnose --checkpoint runs/cpu --scenarios runs/val20.tfrecord drift --method pcdiff

@@ -199,8 +199,8 @@ PRESETS: dict[str, Config] = {
                                     warmup_steps=2, total_steps=6, eval_batch_size=2,
                                     log_every=1, eval_every=3, checkpoint_every=2,
                                     perturb=PerturbConfig(prob=0.5))),
-    # Models v3 (issue 14): recovery examples in both stages, latent fitted on
-    # futures only, longer schedules for the 10k-scene set.
+    # The shipped models' preset (CHANGELOG.md, v3 on): recovery examples in both stages,
+    # latent fitted on futures only, longer schedules for the 10k-scene set.
     "cpu": Config(
         features=FeaturesConfig(max_agents=65, history_steps=11, max_polylines=256,
                                 points_per_polyline=10, segment_length=20.0),

@@ -166,7 +166,7 @@ def test_map_weight_defaults_per_mode_and_an_explicit_weight_wins():
 
 
 def test_collision_weight_defaults_per_mode_and_weighs_the_objective():
-  assert G.GuidanceConfig(mode="objective").coll_weight == 10.0        # session 19's choice
+  assert G.GuidanceConfig(mode="objective").coll_weight == 10.0        # RESULTS' collision-weight ablation
   assert G.GuidanceConfig(mode="adversarial").coll_weight == 1.0       # Table III's setting
   assert G.GuidanceConfig(mode="objective", w_coll=0.5).coll_weight == 0.5
   with pytest.raises(ValueError, match="w_coll"):

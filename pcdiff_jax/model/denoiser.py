@@ -76,8 +76,9 @@ def _attend(q: Array, k: Array, v: Array, mask: Array, heads: int,
   receiver's own; mask (Q, S) -> (Q, d). edge_k, edge_v (Q, S, d): per-pair
   terms added to the keys and values (the relative pose edges), as
   q.k_j + q.e_ij and sum_j w_ij v_j + sum_j w_ij e'_ij: the (Q, S, d) sums
-  are never formed, which made one denoiser call over 8 samples of 65 agents
-  1.3x faster on a CPU (session 19)."""
+  are never formed, which makes one denoiser call over 8 samples of 65 agents
+  1.3x faster on a CPU (docs/BENCHMARKS.md, "The default's step back under
+  32 ms")."""
   d = q.shape[-1]
   hd = d // heads
   split = lambda x: x.reshape(x.shape[:-1] + (heads, hd))

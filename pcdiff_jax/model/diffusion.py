@@ -214,7 +214,7 @@ def ddim_sample_either(denoise: DenoiseFn, mu: Array, sigma: Array, schedule: Sc
   fresh = jax.random.normal(rng_init, mu.shape, mu.dtype)
   # A given init_noise (consistent noise) starts the first chain only: re-noising every warm
   # start with the same draw pushes each agent the same way at every replan (on 50 val scenes
-  # 56% collisions and 53% off-road against 14% and 15%, docs/RESULTS.md "Session 4").
+  # 56% collisions and 53% off-road against 14% and 15% with the v5 model).
   init_noise = fresh if init_noise is None else jnp.where(use_first, init_noise, fresh)
   y = q_sample(mu, steps[0], init_noise, sigma, schedule)
   update = _ddim_update(denoise, sigma, schedule, eta, guide)

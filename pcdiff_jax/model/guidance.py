@@ -76,7 +76,7 @@ class GuidanceConfig:
   @property
   def map_weight(self) -> float:
     """w_map, or the mode's default: 100 for objective guidance (chosen on the
-    first 50 val scenes from 1-300, docs/RESULTS.md "Models v5 guided"), 1 for
+    first 50 val scenes from 1-300 with the v5 model), 1 for
     the adversarial game (the weight Table III was measured with)."""
     if self.w_map is not None:
       return self.w_map
@@ -86,8 +86,8 @@ class GuidanceConfig:
   def coll_weight(self) -> float:
     """w_coll, or the mode's default: 10 for objective guidance (chosen on all
     200 val scenes from 1 / 3 / 10 by a rule fixed before the run, with 8
-    samples per replan, docs/RESULTS.md "Session 19"; 1 before), 1 for the
-    adversarial game (the weight Table III was measured with)."""
+    samples per replan: docs/RESULTS.md, "Ablation: objective guidance's
+    collision weight"), 1 for the adversarial game (the weight Table III was measured with)."""
     if self.w_coll is not None:
       return self.w_coll
     return 10.0 if self.mode == "objective" else 1.0

@@ -4,7 +4,7 @@ The encoder's tokens say where an agent and the map pieces are, but the
 denoiser has to infer from them a quantity it needs at every replan: how far
 the agent is beside its lane and where that lane bends next. Closed-loop
 rollouts drift right of the log by half a metre and under-steer on left
-curves (docs/RESULTS.md, "Session 4"): this module states those quantities
+curves (measured with the v5 model, CHANGELOG.md): this module states those quantities
 explicitly, computed from the scene features alone (no new data field):
 
   lanes ahead   for each look-ahead distance L in `LOOKAHEAD` (m), the lane

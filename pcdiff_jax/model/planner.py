@@ -107,7 +107,7 @@ def repeat_samples(cond: Conditioning, num: int) -> Conditioning:
 def centre_on_top_mode(cond: Conditioning) -> Conditioning:
   """The same prior centred on each agent's most likely proposal latent instead
   of the mean of its K proposals (sigma unchanged). A test-time option: the
-  mean of the modes is not a mode (docs/RESULTS.md: it starts with a turn)."""
+  mean of the modes is not a mode (with the v2 models it started with a turn)."""
   best = jnp.argmax(cond.probs, -1)                                        # (..., A)
   top = jnp.take_along_axis(cond.proposals, best[..., None, None], axis=-2)[..., 0, :]
   return cond.replace(mu=top)
