@@ -249,6 +249,7 @@ class PolicyConfig:
   warm_proposals: int = 0
   stop_hold: bool = True
   start_gate: tuple[float, float] = (0.0, 0.0)
+  max_curvature: float = 0.0
 
 
 @struct.dataclass
@@ -576,6 +577,28 @@ def waymax_actor(cfg: Config, policy: PolicyConfig, dynamics_model) -> Actor:
   return waymax_interop.as_waymax_actor(action_spaces.adapt(actor(cfg, policy), dynamics_model, cfg.kinematics))
 
 
+def with_overrides(policy: PolicyConfig, overrides) -> PolicyConfig:
+  """`policy` with fields replaced by (name, value) pairs, each value converted
+  to the field's type (tuples element-wise); an unknown name is a ValueError
+  that lists the fields."""
+  fields = {f.name: f for f in dataclasses.fields(PolicyConfig)}
+  changes = {}
+  for name, value in overrides:
+    if name not in fields or name == "guidance":
+      raise ValueError(f"unknown policy field {name!r}; choose from {sorted(set(fields) - {'guidance'})}")
+    default = getattr(PolicyConfig(), name)
+    if isinstance(default, tuple):
+      value = tuple(type(d)(v) for d, v in zip(default, value))
+    elif isinstance(default, bool):
+      value = value if isinstance(value, bool) else str(value).lower() in ("1", "true", "yes", "on")
+    elif default is None:   # the optional floats (ensemble_brake_weight)
+      value = None if str(value).lower() == "none" else float(value)
+    else:
+      value = type(default)(value)
+    changes[name] = value
+  return dataclasses.replace(policy, **changes)
+
+
 def validate(cfg: Config, policy: PolicyConfig) -> None:
   """Raises ValueError naming the first PolicyConfig field out of range."""
   if policy.replan_every < 1 or policy.replan_every > cfg.encoder.horizon:
@@ -616,6 +639,8 @@ def validate(cfg: Config, policy: PolicyConfig) -> None:
     raise ValueError(f"select_proposal_scale must be > 0 (m), got {policy.select_proposal_scale}")
   if len(policy.start_gate) != 2 or not all(g >= 0 for g in policy.start_gate):
     raise ValueError(f"start_gate must be (seconds, metres) >= 0, got {policy.start_gate}")
+  if policy.max_curvature < 0:
+    raise ValueError(f"max_curvature must be >= 0 (1/m; 0: off), got {policy.max_curvature}")
   most = min(policy.select_samples - 1, cfg.encoder.num_modes)
   if not 0 <= policy.warm_proposals <= most:
     raise ValueError(f"warm_proposals must be in [0, min(select_samples - 1, num_modes) = {most}], "
@@ -672,7 +697,23 @@ def _execute(state: SimulatorState, plan: Array, path: Array, age, policy: Polic
     seconds, metres = policy.start_gate
     window = advance_plan(plan, age)[:, :max(1, round(seconds / cfg.kinematics.dt))]
     now = gate_start(state, now, window, metres, cfg.kinematics.dt)
+  if policy.max_curvature > 0:
+    now = limit_curvature(state, now, policy.max_curvature, cfg.kinematics.dt)
   return now
+
+
+def limit_curvature(state: SimulatorState, actions: Array, max_curvature: float, dt: float) -> Array:
+  """(O, 2) actions whose yaw rate a wheeled object can follow: a vehicle or
+  cyclist turns only by moving, |psi_dot| <= max_curvature (1/m) x |its speed
+  after this step's acceleration|. The kinematic model would otherwise spin a
+  parked car in place, swinging its corners into its neighbours in a parking
+  row. Pedestrians and other objects keep their yaw rate."""
+  v = dynamics.states_from_trajectory(state.current_sim_trajectory)[:, 0, dynamics.V]
+  speed = jnp.abs(v + actions[:, 0] * dt)
+  types = state.object_metadata.object_types
+  wheeled = (types == ObjectType.VEHICLE) | (types == ObjectType.CYCLIST)
+  bound = jnp.where(wheeled, max_curvature * speed, jnp.inf)
+  return actions.at[:, 1].set(jnp.clip(actions[:, 1], -bound, bound))
 
 
 STOPPED_REVERSE_SPEED = 0.1   # m/s: slower reversing is a stop (float error, log noise), not a manoeuvre

@@ -491,3 +491,33 @@ def test_warm_proposals_start_samples_from_the_most_likely_proposals(models):
   assert select._cache_size() == 1 and bool(jnp.all(jnp.isfinite(second.action.data)))
   with pytest.raises(ValueError, match="warm_proposals"):
     policy.actor(CFG, policy.PolicyConfig(select_samples=3, warm_proposals=3))
+
+
+def test_wheeled_objects_turn_only_by_moving():
+  """max_curvature: a vehicle's or cyclist's yaw rate is bounded by max_curvature x its speed
+  after this step's acceleration (a parked car does not spin in place); a pedestrian keeps its
+  yaw rate; in closed loop a stopped car held by a gate keeps its heading exactly."""
+  from pcdiff_jax.sim.datatypes import ObjectType
+  state = env.reset(make_scene(num_objects=4, num_steps=91, speeds=(10.0, 0.0, 2.0, 0.0)))
+  types = jnp.array([ObjectType.VEHICLE, ObjectType.VEHICLE, ObjectType.CYCLIST, ObjectType.PEDESTRIAN])
+  state = state.replace(object_metadata=state.object_metadata.replace(object_types=types))
+  dt = CFG.kinematics.dt
+  wanted = jnp.array([[0.0, 0.5], [1.0, 0.5], [0.0, -0.9], [0.0, 0.7]])
+  out = np.asarray(jax.jit(lambda s, a: policy.limit_curvature(s, a, 0.2, dt))(state, wanted))
+  # Bounds 0.2 x |v + a dt|: 2.0 (passes), 0.02, 0.4 (clipped, sign kept); the pedestrian passes.
+  np.testing.assert_allclose(out[:, 1], [0.5, 0.02, -0.4, 0.7], atol=1e-6)
+  np.testing.assert_array_equal(out[:, 0], np.asarray(wanted)[:, 0])
+  with pytest.raises(ValueError, match="max_curvature"):
+    policy.actor(CFG, policy.PolicyConfig(max_curvature=-1.0))
+
+
+def test_policy_fields_are_set_by_name_with_their_types():
+  """with_overrides (`experiments.rollout --policy FIELD=VALUE`) converts strings to each field's
+  type, tuples element-wise, and names the fields when one is unknown."""
+  cfg = policy.with_overrides(policy.PolicyConfig(), [("max_curvature", "0.3"), ("start_gate", ("2", "1.5")),
+                                                       ("stop_hold", "false"), ("select_samples", "4"),
+                                                       ("ensemble_brake_weight", "0.3")])
+  assert cfg.max_curvature == 0.3 and cfg.start_gate == (2.0, 1.5) and cfg.stop_hold is False
+  assert cfg.select_samples == 4 and cfg.ensemble_brake_weight == 0.3
+  with pytest.raises(ValueError, match="unknown policy field 'speed'.*max_curvature"):
+    policy.with_overrides(policy.PolicyConfig(), [("speed", "1")])
