@@ -6,7 +6,7 @@ WOMD ?= ../shared/data/womd/motion_data_one_example.tfrecord
 DEMO_OUT ?= runs/demo
 PYTEST_WORKERS ?= 2
 
-.PHONY: install lock demo test notebook bench data train clean
+.PHONY: install lock demo test notebook bench data train clean wosac-env
 
 # Installs the exact versions of requirements.lock (the ones docs/ numbers were measured with),
 # then the package itself without resolving anything again. --no-compile: byte-compiling every
@@ -76,6 +76,24 @@ notebook: install
 
 bench: install
 	$(PY) -m experiments.bench --scenarios $(WOMD)
+
+# Waymo's official sim agents evaluator (`python -m experiments.wosac --score`) in its own venv:
+# it pins Python 3.10 and TensorFlow 2.12, which cannot share ours. PYTHON310= names another
+# interpreter; WOSAC_LOCK= another lock (wosac-requirements.lock: pip freeze of the first install).
+PYTHON310 ?= $(firstword $(wildcard $(shell pyenv root 2>/dev/null)/versions/3.10*/bin/python3.10) $(shell command -v python3.10 2>/dev/null))
+WOSAC_VENV := .wosac-venv
+WOSAC_LOCK ?= wosac-requirements.lock
+$(WOSAC_VENV)/.installed: $(WOSAC_LOCK)
+	@test -n "$(PYTHON310)" && test -x "$(PYTHON310)" || { echo "make wosac-env: no Python 3.10 found (looked for \
+	$$(pyenv root)/versions/3.10*/bin/python3.10 and python3.10 on PATH); install one (pyenv install 3.10) or pass \
+	PYTHON310=/path/to/python3.10" >&2; exit 2; }
+	rm -rf $(WOSAC_VENV) && $(PYTHON310) -m venv $(WOSAC_VENV)
+	$(WOSAC_VENV)/bin/python -m pip install -q --upgrade pip
+	$(WOSAC_VENV)/bin/python -m pip install -q --no-compile -r $(WOSAC_LOCK)
+	$(WOSAC_VENV)/bin/python -c "from waymo_open_dataset.wdl_limited.sim_agents_metrics import metrics"
+	touch $@
+
+wosac-env: $(WOSAC_VENV)/.installed
 
 clean:
 	rm -rf $(VENV) .cache runs

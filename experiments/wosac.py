@@ -4,6 +4,7 @@
       --checkpoint checkpoints/pcdiff-cpu-v8 --out runs/wosac/sub.binproto --account-name you@example.com
   python -m experiments.wosac ... --shard 3/150          # writes sub.binproto-00003-of-00150 (files 3, 153, ...)
   python -m experiments.wosac --check 'runs/wosac/sub.binproto*' --scenarios 'validation/*.tfrecord*'
+  python -m experiments.wosac --score runs/wosac/sub.binproto --scenarios 'validation/*.tfrecord*' --workers 2
 
 --scenarios takes WOMD's scenario/ files (Scenario protos) or its tf_example/
 files. Every sim agent (every object valid at step 10, the SDC included) is
@@ -11,6 +12,11 @@ simulated 32 times for 80 steps by --method, without its logged future; a
 learned method drives the SDC and its --max-agents nearest sim agents, IDM
 the rest (docs/WOSAC.md). --check enforces the official rules and exits 2 on
 a bad submission; add --strict for the metadata the server also requires.
+--score runs Waymo's own metrics (2025 config) in the evaluator's venv (`make
+wosac-env`) on the scenarios' full logs and writes PREFIX.wosac.json and
+PREFIX.wosac.md (--score-out, default: the submission's path without
+.binproto). --method log copies the logged future: a reference to score, never
+a valid submission (it reads the future).
 """
 from __future__ import annotations
 
@@ -49,10 +55,18 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="WOMD TFRecord file(s) or glob(s): Scenario protos or motion tf.Examples")
   p.add_argument("--check", nargs="+", metavar="SUBMISSION",
                  help="check these submission file(s) (globs allowed) instead of writing one")
+  p.add_argument("--score", nargs="+", metavar="SUBMISSION",
+                 help="score these submission file(s) with Waymo's evaluator (needs `make wosac-env`)")
+  p.add_argument("--score-out", default=None, metavar="PREFIX",
+                 help="--score: write PREFIX.wosac.json and PREFIX.wosac.md (default: the first submission's "
+                      "path without .binproto)")
+  p.add_argument("--workers", type=int, default=max(1, min(2, os.cpu_count() or 1)),
+                 help="--score: evaluator processes, each scoring every N-th scenario")
   p.add_argument("--strict", action="store_true",
                  help="--check: missing or wrong metadata (account, method name, required flags) is an error")
   p.add_argument("--out", type=_args.output_file, help="the submission file to write (NAME.binproto)")
-  p.add_argument("--method", default="pcdiff", choices=wosac.METHODS)
+  p.add_argument("--method", default="pcdiff", choices=wosac.METHODS + (wosac.LOG_REPLAY,),
+                 help="log: the logged future 32 times, for scoring only (NOT a valid submission)")
   p.add_argument("--checkpoint", default=None, help="training workdir or shipped model of a learned method")
   p.add_argument("--ego", default="method", choices=wosac.EGOS,
                  help="who drives the SDC: the method (default) or IDM")
@@ -92,9 +106,13 @@ def parse_args(argv=None) -> argparse.Namespace:
   m.add_argument("--num-model-parameters", type=_num_parameters, default=None,
                  help="e.g. 409K (default: counted from the method's parameters)")
   args = p.parse_args(argv)
-  if args.check is None and args.out is None:
-    p.error("give --out SUBMISSION to write one, or --check SUBMISSION to check one")
-  if args.check is None and args.method in evaluation.LEARNED and not args.checkpoint:
+  if args.check is not None and args.score is not None:
+    p.error("give --check or --score, not both")
+  if args.check is None and args.score is None and args.out is None:
+    p.error("give --out SUBMISSION to write one, --check SUBMISSION to check one, or --score SUBMISSION to score one")
+  if args.workers < 1:
+    p.error("--workers must be >= 1")
+  if args.check is None and args.score is None and args.method in evaluation.LEARNED and not args.checkpoint:
     p.error(f"--method {args.method} needs --checkpoint (e.g. checkpoints/pcdiff-cpu-v8)")
   for name in ("max_agents", "ddim_steps", "replan_every", "num_rollouts", "rollouts_per_call", "max_objects"):
     if getattr(args, name) < 1:
@@ -112,8 +130,11 @@ def _metadata(args, cfg: wosac.WosacConfig) -> submission.Metadata:
                    (f", DDIM {ev.ddim_steps} steps, {ev.metrics.max_reactive_agents} agents + SDC per plan, "
                     "IDM beyond" if ev.method in evaluation.LEARNED else "") +
                    (", IDM ego" if cfg.ego == "idm" else ""))
+    if ev.method == wosac.LOG_REPLAY:
+      description = "log replay (the logged future, 32 copies): NOT a valid submission, for scoring only"
   return submission.Metadata(
-      account_name=args.account_name, unique_method_name=args.method_name or f"pcdiff_jax-{ev.method}",
+      account_name=args.account_name, unique_method_name=args.method_name or (
+          "log-replay-NOT-A-SUBMISSION" if ev.method == wosac.LOG_REPLAY else f"pcdiff_jax-{ev.method}"),
       authors=tuple(args.authors), affiliation=args.affiliation, description=description,
       method_link=args.method_link, uses_lidar_data=args.uses_lidar_data, uses_camera_data=args.uses_camera_data,
       uses_public_model_pretraining=args.uses_public_model_pretraining,
@@ -137,12 +158,39 @@ def _check(args) -> int:
   return 2 if report["errors"] else 0
 
 
+def _score(args) -> int:
+  from pcdiff_jax import wosac_scoring
+  try:
+    result = wosac_scoring.score(args.score, args.scenarios, workers=args.workers,
+                                 progress=not args.no_progress)
+  except wosac_scoring.EvaluatorMissing as err:
+    print(f"error: {err}", file=sys.stderr)
+    return 2
+  prefix = args.score_out or args.score[0].split(".binproto")[0]
+  for sid, reason in result["failed"].items():
+    print(f"warning: scenario {sid} could not be scored, skipped: {reason.splitlines()[0]}", file=sys.stderr)
+  if result["missing"]:
+    print(f"warning: {len(result['missing'])} scenario(s) of --scenarios have no rollouts in the submission: "
+          f"{result['missing'][:5]}", file=sys.stderr)
+  if result["unknown"]:
+    print(f"warning: {len(result['unknown'])} submitted scenario(s) are not in --scenarios: "
+          f"{result['unknown'][:5]}", file=sys.stderr)
+  json_path, md_path = wosac_scoring.write_results(result, prefix)
+  agg = result["aggregate"]
+  print(json.dumps({"num_scenarios": agg["num_scenarios"], "failed": len(result["failed"]),
+                    **{k: round(v, 4) for k, v in agg.get("buckets", {}).items()}}))
+  print(f"wrote {json_path} and {md_path}")
+  return 0 if agg["num_scenarios"] else 2
+
+
 def main(argv=None) -> int:
   args = parse_args(argv)
   _args.setup_logging()
   try:
     if args.check is not None:
       return _check(args)
+    if args.score is not None:
+      return _score(args)
     guidance = GuidanceConfig(mode=args.guidance)
     ev = evaluation.EvalConfig(method=args.method, checkpoint=args.checkpoint, ddim_steps=args.ddim_steps,
                                replan_every=args.replan_every, warm_start=args.warm_start, seed=args.seed,
@@ -156,6 +204,9 @@ def main(argv=None) -> int:
     if args.num_rollouts != submission.NUM_ROLLOUTS:
       print(f"warning: --num-rollouts {args.num_rollouts}: the challenge needs {submission.NUM_ROLLOUTS}; "
             "this file is for tests only", file=sys.stderr)
+    if args.method == wosac.LOG_REPLAY:
+      print("warning: --method log copies the logged future: a reference to score (--score), NOT a valid "
+            "submission", file=sys.stderr)
     if args.replan_every != 1:
       print("warning: --replan-every > 1 is not closed loop at 10 Hz (the challenge's rule); the submission "
             "does not acknowledge it", file=sys.stderr)

@@ -40,7 +40,10 @@ from pcdiff_jax.sim.actors import Actor, combine
 
 log = logging.getLogger(__name__)
 
-METHODS = ("cv", "idm") + evaluation.LEARNED
+# "idm" here is the lane-following IDM ("idm-lane"): the route IDM reads the logged future.
+METHODS = ("cv", "idm", "idm-lane") + evaluation.LEARNED
+# Reads the logged future: a reference for scoring and validation, never a valid submission.
+LOG_REPLAY = "log"
 EGOS = ("method", "idm")
 
 
@@ -61,7 +64,7 @@ class WosacConfig:
   hold_lights: bool = True
 
   def validate(self) -> None:
-    if self.eval.method not in METHODS:
+    if self.eval.method not in METHODS + (LOG_REPLAY,):
       raise ValueError(f"unknown WOSAC method {self.eval.method!r}; choose one of {list(METHODS)} "
                        "(log replay and the expert read the logged future)")
     if self.ego not in EGOS:
@@ -94,9 +97,11 @@ def with_sdc(actor: Actor) -> Actor:
 def make_actor(cfg: WosacConfig) -> tuple[Actor, Any]:
   """(actor, params): the method on every sim agent (see the module docstring)."""
   cfg.validate()
+  if cfg.eval.method == LOG_REPLAY:
+    raise ValueError("log replay has no actor: it copies the log (`log_replay`)")
   if cfg.eval.method == "cv":
     return drive_all(baselines.constant_velocity(sim_agents_mask), None, learned=False, ego=cfg.ego)
-  if cfg.eval.method == "idm":
+  if cfg.eval.method in ("idm", "idm-lane"):
     return drive_all(idm.idm(controlled_fn=sim_agents_mask), None, learned=False, ego=cfg.ego)
   actor, models = evaluation.make_actor(dataclasses.replace(cfg.eval, ego="log"))
   return drive_all(actor, models, learned=True, ego=cfg.ego)
@@ -146,17 +151,40 @@ class ScenarioResult:
   lost: int
 
 
+def log_replay(state, num_rollouts: int) -> ScenarioResult:
+  """`num_rollouts` identical copies of the logged future of every sim agent
+  (a state read with the full log), invalid log steps held at the last valid
+  pose: the reference WOSAC reports, not a valid submission."""
+  current = submission.CURRENT_INDEX
+  log_traj = state.log_trajectory
+  valid = np.asarray(log_traj.valid)
+  agents = np.nonzero(valid[:, current])[0]
+  fields = [np.asarray(getattr(log_traj, f))[agents] for f in ("x", "y", "z", "yaw")]
+  out = np.stack([f[:, current + 1:] for f in fields], -1).astype(np.float32)[None]     # (1, A, 80, 4)
+  future = valid[agents, current + 1:][None]
+  if not future.all():
+    out = _hold_last_valid(out, future, np.stack([f[:, current] for f in fields], -1))
+  ids = np.asarray(state.object_metadata.ids)[agents]
+  return ScenarioResult(object_ids=ids, trajectories=np.repeat(out, num_rollouts, 0), lost=0)
+
+
 class Simulator:
   """The jitted closed loop of one method, `rollouts_per_call` rollouts per call."""
 
   def __init__(self, cfg: WosacConfig):
     self.cfg = cfg
+    if cfg.eval.method == LOG_REPLAY:
+      cfg.validate()
+      self.actor, self.params, self.run = None, None, None
+      return
     self.actor, self.params = make_actor(cfg)
     self.run = evaluation.make_rollout_fn(self.actor, cfg.eval)
 
   def simulate(self, state, scenario_id: str) -> ScenarioResult:
     """One loaded (unbatched) scenario -> its rollouts."""
     cfg = self.cfg
+    if cfg.eval.method == LOG_REPLAY:
+      return log_replay(state, cfg.num_rollouts)
     if cfg.hold_lights:
       state = hold_current_lights(state)
     current = submission.CURRENT_INDEX
@@ -222,7 +250,7 @@ def export(scenarios, out: str, cfg: WosacConfig, metadata: submission.Metadata,
   from tqdm.auto import tqdm
   seconds, lost, agents, fallback = [], 0, 0, 0
   cap = cfg.eval.metrics.max_reactive_agents + 1   # the learned agents and the SDC (method or IDM ego)
-  items = womd.iterate(files, with_meta=True, history_only=True, max_num_objects=cfg.max_objects,
+  items = womd.iterate(files, with_meta=True, history_only=cfg.eval.method != LOG_REPLAY, max_num_objects=cfg.max_objects,
                        max_scenarios=max_scenarios, to_jax=False)
   with submission.SubmissionWriter(path, metadata) as writer:
     for state, meta in tqdm(items, desc=f"wosac {cfg.eval.method}", unit="scenario", disable=not progress):

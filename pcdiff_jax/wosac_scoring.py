@@ -1,0 +1,235 @@
+"""Waymo's official sim agents metrics on a submission, from our own venv.
+
+  result = wosac_scoring.score(["sub.binproto"], "val.scenario.tfrecord", workers=2)
+  wosac_scoring.write_results(result, "runs/wosac/sub")   # sub.wosac.json, sub.wosac.md
+
+The evaluator (`waymo-open-dataset-tf-2-12-0`, Python 3.10, TensorFlow 2.12)
+cannot share our environment, so it lives in its own venv (`make wosac-env`,
+`.wosac-venv/`) and runs `pcdiff_jax/wosac_worker.py` there, one subprocess per
+worker, each scoring every N-th scenario on the scenarios' full logs; this
+module checks the inputs, converts tf.Example records to Scenario protos (the
+evaluator reads only those), collects the workers' JSON lines and aggregates
+them. The aggregate is the mean over the scored scenarios, as Waymo's
+`aggregate_scenario_metrics`; the buckets (kinematic, interactive, map-based)
+are weighted means of the likelihoods, linear in them, so the mean of the
+per-scenario buckets equals the buckets of the mean.
+"""
+from __future__ import annotations
+
+import json
+import os
+import queue
+import subprocess
+import sys
+import tempfile
+import threading
+from typing import Optional, Sequence
+
+import numpy as np
+
+from pcdiff_jax.data import submission, womd
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+WORKER = os.path.join(REPO, "pcdiff_jax", "wosac_worker.py")
+DEFAULT_VENV = os.path.join(REPO, ".wosac-venv")
+TCMALLOC = "/usr/lib/x86_64-linux-gnu/libtcmalloc_minimal.so.4"
+
+# Columns of the tables: (key in a scenario's "buckets" or "metrics", header).
+HEADLINE = (("realism_meta_metric", "metametric"), ("kinematic_metrics", "kinematic"),
+            ("interactive_metrics", "interactive"), ("map_based_metrics", "map-based"),
+            ("min_ade", "minADE m"), ("simulated_collision_rate", "sim. collision"),
+            ("simulated_offroad_rate", "sim. off-road"),
+            ("simulated_traffic_light_violation_rate", "sim. light violation"))
+LIKELIHOODS = ("linear_speed_likelihood", "linear_acceleration_likelihood", "angular_speed_likelihood",
+               "angular_acceleration_likelihood", "distance_to_nearest_object_likelihood",
+               "collision_indication_likelihood", "time_to_collision_likelihood",
+               "distance_to_road_edge_likelihood", "offroad_indication_likelihood",
+               "traffic_light_violation_likelihood")
+
+
+class EvaluatorMissing(RuntimeError):
+  """The evaluator's venv is not there (`make wosac-env` builds it)."""
+
+
+def evaluator_python(venv: Optional[str] = None) -> str:
+  """The evaluator venv's interpreter (`venv`, $WOSAC_VENV or .wosac-venv)."""
+  venv = venv or os.environ.get("WOSAC_VENV") or DEFAULT_VENV
+  python = os.path.join(venv, "bin", "python")
+  if not os.path.exists(python):
+    raise EvaluatorMissing(f"Waymo's evaluator is not installed ({python} not found): run `make wosac-env` "
+                           "(or point WOSAC_VENV at a venv holding waymo-open-dataset-tf-2-12-0==1.6.7)")
+  return python
+
+
+def read_submissions(paths: Sequence[str]) -> dict[str, str]:
+  """{scenario id: file} of the submission file(s) (globs allowed); a file
+  that is missing or not a submission, or a scenario in two files, is a
+  ValueError naming the file(s)."""
+  files = []
+  for p in paths:
+    files += womd.expand_paths(p)
+  where: dict[str, str] = {}
+  for path in files:
+    sub = submission.read(path)
+    if not sub.scenario_rollouts:
+      raise ValueError(f"{path}: the submission holds no scenario rollouts")
+    for rollouts in sub.scenario_rollouts:
+      if rollouts.scenario_id in where:
+        raise ValueError(f"{path}: scenario {rollouts.scenario_id} is also in {where[rollouts.scenario_id]}")
+      where[rollouts.scenario_id] = path
+  return where
+
+
+def scenario_files(paths, workdir: str) -> list[str]:
+  """The Scenario-proto files the evaluator reads: the files of `paths`
+  as they are, or, for tf.Example files, a Scenario-proto copy in `workdir`
+  (full logs, `womd.write(..., record_format="scenario")`). A missing or
+  unreadable file is a ValueError naming it."""
+  out = []
+  for path in womd.expand_paths(paths):
+    try:
+      first = next(womd._records(path, 1), (0, []))[1]
+      if not first:
+        raise ValueError(f"{path}: holds no record")
+      kind = womd.detect_format(first[0], path)
+      if kind == "scenario":
+        out.append(path)
+        continue
+      copy = os.path.join(workdir, f"{len(out):05d}-{os.path.basename(path)}.scenario")
+      items = ((s, m.scenario_id) for s, m in womd.iterate(path, with_meta=True, to_jax=False))
+      womd.write(copy, items, record_format="scenario")
+      out.append(copy)
+    except womd.WomdFormatError as err:
+      raise ValueError(str(err)) from None
+  return out
+
+
+def _spawn(python: str, submissions: list[str], scenarios: list[str], index: int, count: int,
+           threads: int) -> subprocess.Popen:
+  env = dict(os.environ, TF_CPP_MIN_LOG_LEVEL="2", TF_NUM_INTRAOP_THREADS=str(threads),
+             OMP_NUM_THREADS=str(threads), PYTHONNOUSERSITE="1")
+  env.pop("PYTHONPATH", None)   # the worker must see only the evaluator's packages
+  if os.path.exists(TCMALLOC):   # ~3x faster scoring, same numbers
+    env["LD_PRELOAD"] = ":".join(p for p in (env.get("LD_PRELOAD"), TCMALLOC) if p)
+  cmd = [python, WORKER, "--submission", *submissions, "--scenarios", *scenarios,
+         "--index", str(index), "--count", str(count)]
+  return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=REPO)
+
+
+def score(submissions: Sequence[str], scenarios, workers: int = 1, progress: bool = True,
+          venv: Optional[str] = None) -> dict:
+  """Scores the submission(s) on the scenarios with `workers` evaluator
+  processes. Returns {"scenarios": {id: {"metrics", "buckets", "seconds",
+  "record"}}, "failed": {id: reason}, "missing": [ids without rollouts],
+  "unknown": [submitted ids not in the scenarios], "aggregate": ...}.
+  Raises EvaluatorMissing, or ValueError naming a bad input file."""
+  python = evaluator_python(venv)
+  where = read_submissions(submissions)
+  files = sorted(set(where.values()))
+  workers = max(1, int(workers))
+  lines: "queue.Queue" = queue.Queue()
+  with tempfile.TemporaryDirectory(prefix="wosac-score-") as tmp:
+    inputs = scenario_files(scenarios, tmp)
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    procs = [_spawn(python, [os.path.abspath(f) for f in files], [os.path.abspath(f) for f in inputs], k,
+                    workers, threads) for k in range(workers)]
+    errors = [[] for _ in procs]
+
+    def pump(k, proc):
+      for line in proc.stdout:
+        lines.put((k, line))
+      errors[k] = proc.stderr.read().splitlines()[-20:]
+      lines.put((k, None))
+
+    for k, proc in enumerate(procs):
+      threading.Thread(target=pump, args=(k, proc), daemon=True).start()
+    from tqdm.auto import tqdm
+    bar = tqdm(total=len(where), desc="wosac score", unit="scenario", disable=not progress)
+    scored, failed, missing, seen, open_workers = {}, {}, [], set(), len(procs)
+    while open_workers:
+      k, line = lines.get()
+      if line is None:
+        open_workers -= 1
+        continue
+      try:
+        item = json.loads(line)
+      except json.JSONDecodeError:
+        continue
+      if item.get("done"):
+        continue
+      sid = item["scenario_id"]
+      seen.add(sid)
+      if item.get("missing"):
+        missing.append(sid)
+        continue
+      if "error" in item:
+        failed[sid] = f"{item['record']}: {item['error']}"
+        bar.write(f"scenario {sid} could not be scored, skipped: {failed[sid]}", file=sys.stderr)
+      else:
+        scored[sid] = {k: item[k] for k in ("metrics", "buckets", "seconds", "record")}
+        bar.set_postfix(metametric=f"{np.mean([s['buckets']['realism_meta_metric'] for s in scored.values()]):.3f}")
+      bar.update(1)
+    bar.close()
+    for k, proc in enumerate(procs):
+      if proc.wait() != 0:
+        raise RuntimeError(f"evaluator worker {k} failed (exit {proc.returncode}):\n" + "\n".join(errors[k]))
+  unknown = sorted(set(where) - seen)
+  return {"scenarios": scored, "failed": failed, "missing": sorted(missing), "unknown": unknown,
+          "submissions": files, "aggregate": aggregate(scored)}
+
+
+def aggregate(scored: dict) -> dict:
+  """The mean of every metric and bucket over the scored scenarios (empty
+  when none), with their count."""
+  if not scored:
+    return {"num_scenarios": 0, "metrics": {}, "buckets": {}}
+  out = {"num_scenarios": len(scored)}
+  for part in ("metrics", "buckets"):
+    keys = sorted(set.intersection(*(set(s[part]) for s in scored.values())))
+    out[part] = {k: float(np.mean([s[part][k] for s in scored.values()])) for k in keys}
+  return out
+
+
+def _value(row: dict, key: str) -> str:
+  v = row.get("buckets", {}).get(key, row.get("metrics", {}).get(key))
+  return "" if v is None else f"{v:.4f}"
+
+
+def markdown(result: dict, title: str = "WOSAC (Waymo's evaluator, 2025 config)") -> str:
+  """The aggregate (headline, every likelihood) and one row per scenario."""
+  agg = result["aggregate"]
+  lines = [f"## {title}", "", f"{agg['num_scenarios']} scenario(s) scored"
+           + (f", {len(result['failed'])} failed" if result["failed"] else "")
+           + (f", {len(result['missing'])} without rollouts" if result["missing"] else "") + ".", ""]
+  lines += ["| metric | mean |", "|---|---|"]
+  lines += [f"| {header} | {_value(agg, key)} |" for key, header in HEADLINE]
+  lines += [f"| {key} | {_value(agg, key)} |" for key in LIKELIHOODS if key in agg.get("metrics", {})]
+  lines += ["", "| scenario | " + " | ".join(h for _, h in HEADLINE) + " |",
+            "|---" * (len(HEADLINE) + 1) + "|"]
+  for sid in sorted(result["scenarios"]):
+    lines.append(f"| {sid} | " + " | ".join(_value(result["scenarios"][sid], k) for k, _ in HEADLINE) + " |")
+  for sid, reason in sorted(result["failed"].items()):
+    lines.append(f"| {sid} | failed: {reason.splitlines()[0][:200]} |" + " |" * (len(HEADLINE) - 1))
+  return "\n".join(lines) + "\n"
+
+
+def write_results(result: dict, prefix: str, title: Optional[str] = None) -> tuple[str, str]:
+  """Writes PREFIX.wosac.json and PREFIX.wosac.md; returns their paths."""
+  os.makedirs(os.path.dirname(os.path.abspath(prefix)), exist_ok=True)
+  json_path, md_path = f"{prefix}.wosac.json", f"{prefix}.wosac.md"
+  with open(json_path, "w") as f:
+    json.dump(result, f, indent=1, sort_keys=True)
+  with open(md_path, "w") as f:
+    f.write(markdown(result, title) if title else markdown(result))
+  return json_path, md_path
+
+
+def compare(results: dict[str, dict]) -> str:
+  """One markdown row per labelled result (label -> `score` result): the
+  headline columns and the scenario count."""
+  lines = ["| method | scenes | " + " | ".join(h for _, h in HEADLINE) + " |",
+           "|---|---" + "|---" * len(HEADLINE) + "|"]
+  for label, result in results.items():
+    agg = result["aggregate"]
+    lines.append(f"| {label} | {agg['num_scenarios']} | " + " | ".join(_value(agg, k) for k, _ in HEADLINE) + " |")
+  return "\n".join(lines) + "\n"

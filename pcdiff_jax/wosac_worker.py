@@ -1,0 +1,94 @@
+"""Scores sim agents submissions with Waymo's official evaluator (2025 config).
+
+Runs inside the evaluator's own venv (`make wosac-env`: Python 3.10,
+`waymo-open-dataset-tf-2-12-0`), started by `pcdiff_jax.wosac_scoring` as a
+script, never imported by pcdiff_jax: it imports only that venv's packages.
+
+  .wosac-venv/bin/python pcdiff_jax/wosac_worker.py --submission S... \
+      --scenarios F... [--index K --count N]
+
+Reads every Scenario proto of --scenarios (full logs) and every rollout of
+--submission, scores the scenarios whose position in the files is K modulo N,
+and prints one JSON line per scenario on stdout: {"scenario_id", "record",
+"metrics": {field: value}, "buckets": {...}, "seconds"}, {"scenario_id",
+"error"} when scoring raised, or {"scenario_id", "missing": true} when the
+submission holds no rollouts for it. A final {"done": true, "submitted": [ids]}
+lists every scenario id of the submission.
+"""
+import argparse
+import json
+import os
+import sys
+import time
+import traceback
+
+os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
+CONFIG = "challenge_2025_sim_agents_config.textproto"
+
+
+def _metrics_dict(message) -> dict:
+  """Every scalar field of a metrics proto, by name (fields left unset read 0)."""
+  return {f.name: float(getattr(message, f.name)) for f in message.DESCRIPTOR.fields
+          if f.type in (f.TYPE_FLOAT, f.TYPE_DOUBLE)}
+
+
+def load_config(metrics):
+  """The 2025 challenge config (`load_metrics_config(SIM_AGENTS)` opens it by a
+  path relative to site-packages, so it only works from there: same file, by
+  its absolute path)."""
+  from google.protobuf import text_format
+  from waymo_open_dataset.protos import sim_agents_metrics_pb2
+  path = os.path.join(os.path.dirname(metrics.__file__), CONFIG)
+  with open(path) as f:
+    return text_format.Parse(f.read(), sim_agents_metrics_pb2.SimAgentMetricsConfig())
+
+
+def main(argv=None) -> int:
+  p = argparse.ArgumentParser()
+  p.add_argument("--submission", nargs="+", required=True)
+  p.add_argument("--scenarios", nargs="+", required=True)
+  p.add_argument("--index", type=int, default=0)
+  p.add_argument("--count", type=int, default=1)
+  args = p.parse_args(argv)
+
+  import tensorflow as tf
+  tf.config.threading.set_inter_op_parallelism_threads(1)
+  from waymo_open_dataset.protos import scenario_pb2, sim_agents_submission_pb2
+  from waymo_open_dataset.wdl_limited.sim_agents_metrics import metrics
+
+  config = load_config(metrics)
+  rollouts = {}
+  for path in args.submission:
+    with open(path, "rb") as f:
+      sub = sim_agents_submission_pb2.SimAgentsChallengeSubmission.FromString(f.read())
+    for r in sub.scenario_rollouts:
+      rollouts[r.scenario_id] = r
+  position = 0
+  for path in args.scenarios:
+    for record, raw in enumerate(tf.data.TFRecordDataset(path).as_numpy_iterator()):
+      position += 1
+      if (position - 1) % args.count != args.index:
+        continue
+      scenario = scenario_pb2.Scenario.FromString(raw)
+      sid = scenario.scenario_id
+      where = f"{path}#{record}"
+      if sid not in rollouts:
+        print(json.dumps({"scenario_id": sid, "record": where, "missing": True}), flush=True)
+        continue
+      t0 = time.perf_counter()
+      try:
+        result = metrics.compute_scenario_metrics_for_bundle(config, scenario, rollouts[sid])
+        buckets = metrics.aggregate_metrics_to_buckets(config, result)
+        line = {"scenario_id": sid, "record": where, "metrics": _metrics_dict(result),
+                "buckets": _metrics_dict(buckets), "seconds": time.perf_counter() - t0}
+      except Exception as err:  # one bad scene is reported and skipped, the others still count
+        line = {"scenario_id": sid, "record": where,
+                "error": f"{type(err).__name__}: {err}".strip()[:2000],
+                "traceback": traceback.format_exc()[-2000:]}
+      print(json.dumps(line), flush=True)
+  print(json.dumps({"done": True, "submitted": sorted(rollouts)}), flush=True)
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())
