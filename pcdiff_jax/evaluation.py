@@ -35,7 +35,10 @@ METHODS: dict[str, Callable[[int], Actor]] = {
     "log": lambda max_agents: baselines.log_replay(),
     "cv": lambda max_agents: baselines.constant_velocity(baselines.reactive_agents(max_agents)),
     "expert": lambda max_agents: baselines.expert(controlled_fn=baselines.reactive_agents(max_agents)),
-    "idm": lambda max_agents: idm.idm(controlled_fn=baselines.reactive_agents(max_agents)),
+    # IDM along each object's logged path (reads the logged future; still objects held).
+    "idm": lambda max_agents: baselines.idm_route(controlled_fn=baselines.reactive_agents(max_agents)),
+    # IDM along the nearest lane (reads no future; the WOSAC baseline).
+    "idm-lane": lambda max_agents: idm.idm(controlled_fn=baselines.reactive_agents(max_agents)),
 }
 
 
@@ -114,6 +117,7 @@ class EvalConfig:
   ensemble_pass: str = "brake"
   stop_hold: bool = True
   start_gate: tuple[float, float] = (0.0, 0.0)
+  policy_overrides: tuple[tuple[str, Any], ...] = ()
 
   @property
   def adversarial_scores(self) -> bool:
@@ -172,6 +176,7 @@ def _method_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
                              ensemble_brake_margin=cfg.ensemble_brake_margin,
                              ensemble_pass=cfg.ensemble_pass, stop_hold=cfg.stop_hold,
                              start_gate=cfg.start_gate)
+  pcfg = policy.with_overrides(pcfg, cfg.policy_overrides)
   return policy.actor(with_agent_cap(model_cfg, cfg.metrics), pcfg), models
 
 

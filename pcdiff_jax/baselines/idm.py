@@ -1,4 +1,7 @@
-"""IDM baseline: lane following with the Intelligent Driver Model, no prediction.
+"""IDM baseline `idm-lane`: lane following with the Intelligent Driver Model.
+
+It reads no logged future (WOSAC exports use it); `route.idm_route` is the IDM on
+each object's logged path that `experiments.rollout` calls `idm`.
 
 Each controlled agent (the reactive set, fixed at `init`) at every step:
 
@@ -89,12 +92,15 @@ def _leader_gap(state: SimulatorState, cfg: IDMConfig) -> tuple[Array, Array]:
   return lead_gap, lead_speed
 
 
-def idm_acceleration(speed: Array, gap: Array, lead_speed: Array, cfg: IDMConfig) -> Array:
-  """IDM acceleration (...,); an infinite gap is free driving."""
+def idm_acceleration(speed: Array, gap: Array, lead_speed: Array, cfg: IDMConfig,
+                     desired_speed: Optional[Array] = None) -> Array:
+  """IDM acceleration (...,); an infinite gap is free driving. desired_speed
+  (...,) overrides cfg.desired_speed (e.g. one per object)."""
+  v0 = cfg.desired_speed if desired_speed is None else desired_speed
   dv = speed - lead_speed
   s_star = cfg.min_gap + jnp.maximum(speed * cfg.headway + speed * dv / (
       2.0 * jnp.sqrt(cfg.max_accel * cfg.comfortable_decel)), 0.0)
-  free = 1.0 - (jnp.maximum(speed, 0.0) / cfg.desired_speed) ** cfg.exponent
+  free = 1.0 - (jnp.maximum(speed, 0.0) / v0) ** cfg.exponent
   finite = jnp.isfinite(gap)
   safe_gap = jnp.where(finite, jnp.maximum(gap, 0.1), 1.0)
   interaction = jnp.where(finite, (s_star / safe_gap) ** 2, 0.0)
@@ -144,7 +150,7 @@ def sdc_only(state: SimulatorState) -> Array:
 
 
 def idm(cfg: IDMConfig = IDMConfig(), controlled_fn: ControlledFn = reactive_agents(),
-        name: str = "idm") -> Actor:
+        name: str = "idm-lane") -> Actor:
   """The IDM baseline as an Actor (controlled set and lane samples fixed at
   `init`). `controlled_fn=sdc_only` makes it the ego policy."""
   def init(rng, state):
