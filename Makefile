@@ -81,7 +81,7 @@ bench: install
 # it pins Python 3.10 and TensorFlow 2.12, which cannot share ours. PYTHON310= names another
 # interpreter; WOSAC_LOCK= another lock (wosac-requirements.lock: pip freeze of the first install).
 PYTHON310 ?= $(firstword $(wildcard $(shell pyenv root 2>/dev/null)/versions/3.10*/bin/python3.10) $(shell command -v python3.10 2>/dev/null))
-WOSAC_VENV := .wosac-venv
+WOSAC_VENV ?= .wosac-venv
 WOSAC_LOCK ?= wosac-requirements.lock
 $(WOSAC_VENV)/.installed: $(WOSAC_LOCK)
 	@test -n "$(PYTHON310)" && test -x "$(PYTHON310)" || { echo "make wosac-env: no Python 3.10 found (looked for \

@@ -84,8 +84,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="rollouts per scenario (the challenge needs 32; fewer only for quick tests)")
   p.add_argument("--rollouts-per-call", type=int, default=submission.NUM_ROLLOUTS,
                  help="rollouts per jitted call (lower it to save memory)")
-  p.add_argument("--max-objects", type=int, default=128,
-                 help="padded objects per scenario; raise it for scenes with more sim agents")
+  p.add_argument("--max-objects", type=int, default=None,
+                 help="padded objects per scenario (default: 128, 256, ... whichever first holds the scene)")
   p.add_argument("--shard", type=_shard, default=None, metavar="INDEX/COUNT",
                  help="simulate every COUNT-th input file from INDEX; writes OUT-0000I-of-0000N")
   p.add_argument("--max-scenarios", type=int, default=None, help="only the first N scenarios (a test)")
@@ -115,7 +115,7 @@ def parse_args(argv=None) -> argparse.Namespace:
   if args.check is None and args.score is None and args.method in evaluation.LEARNED and not args.checkpoint:
     p.error(f"--method {args.method} needs --checkpoint (e.g. checkpoints/pcdiff-cpu-v8)")
   for name in ("max_agents", "ddim_steps", "replan_every", "num_rollouts", "rollouts_per_call", "max_objects"):
-    if getattr(args, name) < 1:
+    if getattr(args, name) is not None and getattr(args, name) < 1:
       p.error(f"--{name.replace('_', '-')} must be >= 1")
   if args.max_scenarios is not None and args.max_scenarios < 1:
     p.error("--max-scenarios must be >= 1")

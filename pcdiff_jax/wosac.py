@@ -54,13 +54,14 @@ class WosacConfig:
   method's cap of sim agents besides the SDC). ego: "method" (the method
   drives the SDC too) or "idm". num_rollouts: 32 for a valid submission.
   rollouts_per_call: rollouts per jitted call (memory against speed).
-  max_objects: padded object count (raise it for scenes with more than 128
-  sim agents). hold_lights: step 10's traffic lights for the whole rollout."""
+  max_objects: padded object count, or None (default) for the first of
+  `womd.OBJECT_BUCKETS` (128, 256, ...) that holds each scene: no scene is
+  refused for its size, and the closed loop compiles once per bucket. hold_lights: step 10's traffic lights for the whole rollout."""
   eval: evaluation.EvalConfig = evaluation.EvalConfig()
   ego: str = "method"
   num_rollouts: int = submission.NUM_ROLLOUTS
   rollouts_per_call: int = submission.NUM_ROLLOUTS
-  max_objects: int = 128
+  max_objects: Optional[int] = None
   hold_lights: bool = True
 
   def validate(self) -> None:
@@ -273,7 +274,7 @@ def export(scenarios, out: str, cfg: WosacConfig, metadata: submission.Metadata,
           "metadata": dataclasses.asdict(metadata)}
 
 
-def check(paths: Sequence[str], scenarios, max_objects: int = 128, strict: bool = False,
+def check(paths: Sequence[str], scenarios, max_objects: Optional[int] = None, strict: bool = False,
           num_rollouts: int = submission.NUM_ROLLOUTS) -> dict:
   """Checks submission file(s) against the scenarios they simulate: every
   official rule (`submission.check_rollouts`), every scenario exactly once,

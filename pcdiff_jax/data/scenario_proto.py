@@ -87,6 +87,17 @@ def is_scenario(raw: bytes) -> bool:
 # Roadgraph sampling (Waymo's converter, vectorised)
 # --------------------------------------------------------------------------
 
+def _sample_count(n: int, spacing: float, source_spacing: float) -> int:
+  """The converter's loop `while int(count * spacing / source_spacing) < n - 1:
+  count += 1`, started near its end instead of at 0."""
+  count = max(0, int((n - 1) * source_spacing / spacing) - 2)
+  while count > 0 and int((count - 1) * spacing / source_spacing) >= n - 1:
+    count -= 1
+  while int(count * spacing / source_spacing) < n - 1:
+    count += 1
+  return count
+
+
 def resample_polyline(points: np.ndarray, spacing: float = POLYLINE_SPACING,
                       source_spacing: float = SOURCE_SPACING) -> np.ndarray:
   """(N, 3) -> (M, 3) float64 samples every `spacing` metres of a polyline
@@ -98,9 +109,12 @@ def resample_polyline(points: np.ndarray, spacing: float = POLYLINE_SPACING,
   if n == 0:
     return points
   spacing = source_spacing if spacing <= 0 else spacing
-  count = 0
-  while int(count * spacing / source_spacing) < n - 1:   # the converter's loop bound
-    count += 1
+  if spacing == source_spacing:   # every source point (alpha is 0): the same values without the spline
+    out = points[:n - 1]
+    if n == 1 or np.sum((points[-1] - out[-1]) ** 2) > 0.01 ** 2:
+      out = np.concatenate([out, points[-1:]], 0)
+    return out
+  count = _sample_count(n, spacing, source_spacing)
   dist = np.arange(count) * spacing
   left = (dist / source_spacing).astype(np.int64)
   alpha = ((dist - left * source_spacing) / source_spacing)[:, None]
@@ -138,13 +152,17 @@ def sample_polygon(points: np.ndarray, spacing: float = POLYGON_SPACING) -> np.n
   return np.concatenate(out, 0)
 
 
-def directions(points: np.ndarray) -> np.ndarray:
-  """(M, 3) unit vectors from each sample to the next; 0 for the last one."""
+def directions(points: np.ndarray, ends: Optional[np.ndarray] = None) -> np.ndarray:
+  """(M, 3) unit vectors from each sample to the next; 0 for the last one,
+  and for the last sample of each feature when `ends` (their indices) is
+  given (several features' samples back to back)."""
   d = np.zeros_like(points)
   if len(points) > 1:
     seg = np.diff(points, axis=0)
     norm = np.linalg.norm(seg, axis=1, keepdims=True)
     d[:-1] = np.where(norm > 0, seg / np.where(norm > 0, norm, 1.0), 0.0)
+  if ends is not None:
+    d[ends] = 0.0
   return d
 
 
@@ -194,16 +212,21 @@ def _track_arrays(tracks, num_steps: int) -> dict[str, np.ndarray]:
   return out
 
 
-def _choose_tracks(scenario, valid: np.ndarray, xy_now: np.ndarray, current: int, max_objects: int,
+def _choose_tracks(scenario, valid: np.ndarray, xy_now: np.ndarray, current: int, max_objects,
                    required: set) -> np.ndarray:
-  """Track indices to keep (sorted, Scenario order)."""
+  """Track indices to keep (sorted, Scenario order), for the first size of
+  `max_objects` (an int or increasing sizes) that holds every sim agent."""
   num = len(scenario.tracks)
-  if num <= max_objects:
-    return np.arange(num)
   now = valid[:, current]
-  if now.sum() > max_objects:
+  sizes = (max_objects,) if np.isscalar(max_objects) else tuple(max_objects)
+  for max_objects in sizes:
+    if num <= max_objects:
+      return np.arange(num)
+    if now.sum() <= max_objects:
+      break
+  else:
     raise ScenarioFormatError("tracks", f"{int(now.sum())} tracks are valid at the current step (the sim "
-                                        f"agents), more than max_num_objects={max_objects}: raise it")
+                                        f"agents), more than max_num_objects={max_objects}")
   sdc = scenario.sdc_track_index
   dist = np.linalg.norm(xy_now - xy_now[sdc], axis=1)
   is_required = np.isin(np.arange(num), sorted(required))
@@ -213,11 +236,13 @@ def _choose_tracks(scenario, valid: np.ndarray, xy_now: np.ndarray, current: int
   return np.sort(order[:max_objects])
 
 
-def scenario_to_example(scenario, num_past: int = 10, num_future: int = 80, max_objects: int = 128,
+def scenario_to_example(scenario, num_past: int = 10, num_future: int = 80, max_objects=128,
                         max_lights: int = 16, polyline_spacing: float = POLYLINE_SPACING,
                         polygon_spacing: float = POLYGON_SPACING) -> dict[str, np.ndarray]:
   """A Scenario (message or bytes) -> {tf.Example feature key: flat array},
-  the arrays `womd` reads from a parsed WOMD motion tf.Example."""
+  the arrays `womd` reads from a parsed WOMD motion tf.Example. max_objects:
+  an int, or increasing sizes (`womd.OBJECT_BUCKETS`) of which the first that
+  holds every sim agent is used."""
   if isinstance(scenario, (bytes, bytearray)):
     scenario = parse(bytes(scenario))
   num_steps = num_past + 1 + num_future
@@ -291,25 +316,28 @@ def scenario_to_example(scenario, num_past: int = 10, num_future: int = 80, max_
     for name, values in lights.items():
       ex[f"traffic_light_state/{part}/{name}"] = values[a:b].reshape(-1)
 
-  # Roadgraph.
-  xyz, dirs, types, rg_ids = [], [], [], []
+  # Roadgraph: every feature's samples, then the per-point arrays in one pass.
+  xyz, types, rg_ids, which = [], [], [], []
   for j, feature in enumerate(scenario.map_features):
     samples, rg_type = feature_samples(feature, polyline_spacing, polygon_spacing)
-    if len(samples) == 0:
-      continue
-    if not np.all(np.isfinite(samples)):
-      raise ScenarioFormatError(f"map_features[{j}]", "non-finite point coordinates")
-    xyz.append(samples)
-    dirs.append(directions(samples))
-    types.append(np.full(len(samples), rg_type, np.int64))
-    rg_ids.append(np.full(len(samples), feature.id, np.int64))
+    if len(samples):
+      xyz.append(samples)
+      types.append(rg_type)
+      rg_ids.append(feature.id)
+      which.append(j)
   if not xyz:
     raise ScenarioFormatError("map_features", "no map feature with points (the roadgraph would be empty)")
-  ex["roadgraph_samples/xyz"] = np.concatenate(xyz).astype(np.float32).reshape(-1)
-  ex["roadgraph_samples/dir"] = np.concatenate(dirs).astype(np.float32).reshape(-1)
-  ex["roadgraph_samples/type"] = np.concatenate(types)
-  ex["roadgraph_samples/id"] = np.concatenate(rg_ids)
-  ex["roadgraph_samples/valid"] = np.ones(len(ex["roadgraph_samples/type"]), np.int64)
+  counts = np.array([len(p) for p in xyz])
+  points = np.concatenate(xyz)
+  bad = ~np.all(np.isfinite(points), axis=1)
+  if bad.any():
+    j = which[int(np.searchsorted(np.cumsum(counts), np.argmax(bad), side="right"))]
+    raise ScenarioFormatError(f"map_features[{j}]", "non-finite point coordinates")
+  ex["roadgraph_samples/xyz"] = points.astype(np.float32).reshape(-1)
+  ex["roadgraph_samples/dir"] = directions(points, ends=np.cumsum(counts) - 1).astype(np.float32).reshape(-1)
+  ex["roadgraph_samples/type"] = np.repeat(np.array(types, np.int64), counts)
+  ex["roadgraph_samples/id"] = np.repeat(np.array(rg_ids, np.int64), counts)
+  ex["roadgraph_samples/valid"] = np.ones(len(points), np.int64)
   return ex
 
 

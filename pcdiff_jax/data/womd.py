@@ -98,9 +98,16 @@ class ScenarioMeta:
   record_index: Union[int, tuple[int, ...]]
 
 
+# Padded object counts when `max_num_objects=None`: each scenario takes the
+# first that holds it (a few shapes, so a jitted rollout compiles a few times).
+OBJECT_BUCKETS = (128, 256, 512, 1024, 2048)
+
+
 @dataclasses.dataclass(frozen=True)
 class LoaderConfig:
-  max_num_objects: int = 128
+  """max_num_objects: the padded object count, or None for the first of
+  OBJECT_BUCKETS that holds each scenario (no scene refused for its size)."""
+  max_num_objects: Optional[int] = 128
   max_num_rg_points: int = 30000
   max_num_traffic_lights: int = 16
   num_past: int = NUM_PAST
@@ -285,13 +292,14 @@ def example_to_numpy_state(ex: dict, path: str, index: int, cfg: LoaderConfig) -
     raise WomdFormatError(path, index, "state/is_sdc", f"expected exactly one SDC, found {num_sdc}")
 
   # Objects: keep every slot if they fit, else the slots holding real objects.
-  keep = np.arange(num_obj)
-  if num_obj > cfg.max_num_objects:
-    keep = np.nonzero((meta["tracks_to_predict"] != -1) & valid.any(axis=1))[0]
-    if keep.size > cfg.max_num_objects:
-      raise WomdFormatError(path, index, "state/id",
-                            f"{keep.size} valid objects exceed max_num_objects={cfg.max_num_objects}")
-  n_pad = cfg.max_num_objects
+  real = np.nonzero((meta["tracks_to_predict"] != -1) & valid.any(axis=1))[0]
+  for n_pad in object_sizes(cfg.max_num_objects):
+    keep = np.arange(num_obj) if num_obj <= n_pad else real
+    if keep.size <= n_pad:
+      break
+  else:
+    raise WomdFormatError(path, index, "state/id",
+                          f"{real.size} valid objects exceed max_num_objects={n_pad}")
 
   # Box sizes: mean over valid steps (Waymax), computed in float64 so that a
   # constant size reads back bit-identical; never-valid slots keep raw values.
@@ -484,18 +492,32 @@ def detect_format(raw: bytes, path: str = "<bytes>", index: int = 0) -> str:
   raise WomdFormatError(path, index, None, "neither a WOMD motion tf.Example nor a WOMD Scenario proto")
 
 
-def _parse_scenarios(raw: Sequence[bytes], path: str, first_index: int, cfg: LoaderConfig) -> list:
-  """Scenario protos -> the per-record dicts `_parse_raw` gives (errors in place)."""
+def object_sizes(max_num_objects: Optional[int]) -> tuple[int, ...]:
+  """The padded object counts to try, smallest first."""
+  return OBJECT_BUCKETS if max_num_objects is None else (max_num_objects,)
+
+
+def pad_objects(arrays: dict, size: int) -> dict:
+  """A scenario's numpy arrays (`iterate_numpy`) padded to `size` objects
+  with the loader's fill values (-1, False), to batch it with larger ones."""
+  def pad(a):
+    fill = False if a.dtype == bool else -1
+    return _pad(a, size, 0, fill)
+  return {**arrays, "trajectory": {k: pad(v) for k, v in arrays["trajectory"].items()},
+          "metadata": {k: pad(v) for k, v in arrays["metadata"].items()}}
+
+
+def _parse_scenarios(raw: Sequence[bytes], path: str, first_index: int, cfg: LoaderConfig) -> Iterator:
+  """Scenario protos -> the per-record dicts `_parse_raw` gives (errors in
+  place), one at a time: a reader that stops early converts no more."""
   from pcdiff_jax.data import scenario_proto
-  out = []
   for i, r in enumerate(raw):
     try:
-      out.append(scenario_proto.scenario_to_example(
-          r, num_past=cfg.num_past, num_future=cfg.num_future, max_objects=cfg.max_num_objects,
-          max_lights=cfg.max_num_traffic_lights))
+      yield scenario_proto.scenario_to_example(
+          r, num_past=cfg.num_past, num_future=cfg.num_future, max_objects=object_sizes(cfg.max_num_objects),
+          max_lights=cfg.max_num_traffic_lights)
     except scenario_proto.ScenarioFormatError as err:
-      out.append(WomdFormatError(path, first_index + i, err.field, str(err)))
-  return out
+      yield WomdFormatError(path, first_index + i, err.field, str(err))
 
 
 def iterate_numpy(paths, cfg: LoaderConfig = LoaderConfig(), on_error: str = "raise",
@@ -543,10 +565,12 @@ def iterate_numpy(paths, cfg: LoaderConfig = LoaderConfig(), on_error: str = "ra
 
 def _stack(items: list[dict]) -> dict:
   import jax
+  size = max(a["metadata"]["ids"].shape[0] for a in items)   # scenes of different buckets: the largest
+  items = [pad_objects(a, size) for a in items]
   return jax.tree_util.tree_map(lambda *xs: np.stack(xs), *items)
 
 
-def iterate(paths, batch_size: Optional[int] = None, max_num_objects: int = 128,
+def iterate(paths, batch_size: Optional[int] = None, max_num_objects: Optional[int] = 128,
             max_num_rg_points: int = 30000, max_num_traffic_lights: int = 16,
             on_error: str = "raise", with_meta: bool = False, drop_remainder: bool = False,
             to_jax: bool = True, skipped: Optional[list] = None,
@@ -559,7 +583,9 @@ def iterate(paths, batch_size: Optional[int] = None, max_num_objects: int = 128,
     batch_size: None yields single states (O, T); an int yields batched
       states (B, O, T); the last smaller batch is kept unless drop_remainder.
     max_num_objects, max_num_rg_points, max_num_traffic_lights: fixed padded
-      sizes (records larger than these: see the module docstring).
+      sizes (records larger than these: see the module docstring);
+      max_num_objects=None pads each scenario to the first of OBJECT_BUCKETS
+      that holds it, and a batch to its largest scenario's.
     on_error: 'raise' (default) or 'skip' bad records with a warning.
     with_meta: also yield a `ScenarioMeta` (scenario ids, file, record index).
     skipped: a list that collects the errors of skipped records.
