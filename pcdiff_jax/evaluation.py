@@ -330,7 +330,7 @@ def evaluate(scenarios: Sequence[str] | str, out_dir: str, cfg: EvalConfig,
       scores_seed = []
       load_errors: list = []
       batches = womd.iterate(files, batch_size=cfg.batch_size, with_meta=True, on_error="skip",
-                             skipped=load_errors, max_scenarios=cfg.max_scenarios)
+                             skipped=load_errors, max_scenarios=cfg.max_scenarios, max_num_objects=None)
       bar = tqdm(batches, desc=f"{cfg.method} seed {seed}", unit="batch", disable=not progress)
       for batch_index, (state, meta) in enumerate(bar):
         n = state.shape[0]
