@@ -1,6 +1,8 @@
 """WOSAC: the messages' bytes, the submission rules, the export and the checker."""
 from __future__ import annotations
 
+import json
+import os
 import struct
 
 import jax
@@ -181,3 +183,113 @@ def test_cli_bad_input(tmp_path, capsys):
   assert cli.main(["--scenarios", str(tmp_path / "missing.tfrecord"), "--method", "cv",
                    "--out", str(tmp_path / "s.binproto")]) == 2
   assert "missing.tfrecord" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------
+# Scoring with Waymo's evaluator: the glue (a fake evaluator), then the real one
+# --------------------------------------------------------------------------
+
+FAKE_WORKER = r'''#!/bin/sh
+# A stand-in for the evaluator venv's python: prints the worker's JSON lines.
+index=0
+while [ $# -gt 0 ]; do [ "$1" = "--index" ] && index=$2; shift; done
+m='"metametric": MM, "min_average_displacement_error": 1.5, "linear_speed_likelihood": 0.25'
+b='"realism_meta_metric": MM, "kinematic_metrics": 0.5, "interactive_metrics": 0.5, "map_based_metrics": 0.5, "min_ade": 1.5, "simulated_collision_rate": 0.1'
+line() { echo "{\"scenario_id\": \"$1\", \"record\": \"f#0\", \"metrics\": {$(echo "$m" | sed s/MM/$2/)}, \"buckets\": {$(echo "$b" | sed s/MM/$2/)}, \"seconds\": 1.0}"; }
+if [ "$index" = 0 ]; then
+  line s0 0.5
+  echo '{"scenario_id": "bad", "record": "f#1", "error": "ValueError: boom", "traceback": ""}'
+else
+  line s1 0.7
+  echo '{"scenario_id": "s9", "record": "f#2", "missing": true}'
+fi
+echo '{"done": true, "submitted": ["bad", "s0", "s1", "zz"]}'
+'''
+
+
+def _fake_evaluator(tmp_path):
+  venv = tmp_path / "fake-venv"
+  (venv / "bin").mkdir(parents=True)
+  python = venv / "bin" / "python"
+  python.write_text(FAKE_WORKER)
+  python.chmod(0o755)
+  return str(venv)
+
+
+def _submission(tmp_path, ids):
+  path = str(tmp_path / "sub.binproto")
+  with submission.SubmissionWriter(path, submission.Metadata(unique_method_name="m")) as writer:
+    for sid in ids:
+      writer.add(submission.scenario_rollouts(sid, [1], np.zeros((1, 1, 80, 4), np.float32)))
+  return path
+
+
+def test_score_collects_the_workers_aggregates_and_writes_tables(womd_path, tmp_path, monkeypatch, capsys):
+  from experiments import wosac as cli
+  from pcdiff_jax import wosac_scoring
+  venv = _fake_evaluator(tmp_path)
+  sub = _submission(tmp_path, ["s0", "s1", "bad", "zz"])
+  result = wosac_scoring.score([sub], womd_path, workers=2, progress=False, venv=venv)
+  assert sorted(result["scenarios"]) == ["s0", "s1"] and list(result["failed"]) == ["bad"]
+  assert "ValueError: boom" in result["failed"]["bad"] and result["missing"] == ["s9"]
+  assert result["unknown"] == ["zz"]
+  agg = result["aggregate"]
+  assert agg["num_scenarios"] == 2 and agg["buckets"]["realism_meta_metric"] == pytest.approx(0.6)
+  assert agg["metrics"]["linear_speed_likelihood"] == pytest.approx(0.25)
+  table = wosac_scoring.markdown(result)
+  assert "| metametric | 0.6000 |" in table and "| s1 | 0.7000 |" in table and "failed: " in table
+  assert "| linear_speed_likelihood | 0.2500 |" in table
+  assert "| m | 2 | 0.6000 |" in wosac_scoring.compare({"m": result})
+  # The CLI: JSON and markdown next to the submission, warnings for the scenes left out, exit 0.
+  monkeypatch.setenv("WOSAC_VENV", venv)
+  assert cli.main(["--score", sub, "--scenarios", womd_path, "--no-progress"]) == 0
+  out = capsys.readouterr()
+  assert "scenario bad could not be scored, skipped" in out.err and "not in --scenarios" in out.err
+  saved = json.loads((tmp_path / "sub.wosac.json").read_text())
+  assert saved["aggregate"] == agg and (tmp_path / "sub.wosac.md").read_text() == table
+
+
+def test_score_refuses_bad_inputs(womd_path, tmp_path, monkeypatch, capsys):
+  from experiments import wosac as cli
+  sub = _submission(tmp_path, ["s0"])
+  monkeypatch.setenv("WOSAC_VENV", str(tmp_path / "nowhere"))
+  assert cli.main(["--score", sub, "--scenarios", womd_path]) == 2
+  err = capsys.readouterr().err
+  assert "make wosac-env" in err and "Traceback" not in err
+  monkeypatch.setenv("WOSAC_VENV", _fake_evaluator(tmp_path))
+  (tmp_path / "junk.binproto").write_bytes(b"\xff\xff\xff")
+  assert cli.main(["--score", str(tmp_path / "junk.binproto"), "--scenarios", womd_path]) == 2
+  assert "junk.binproto: not a SimAgentsChallengeSubmission" in capsys.readouterr().err
+  (tmp_path / "junk.tfrecord").write_bytes(b"\x00" * 40)
+  assert cli.main(["--score", sub, "--scenarios", str(tmp_path / "junk.tfrecord")]) == 2
+  assert "junk.tfrecord" in capsys.readouterr().err
+  assert cli.main(["--score", str(tmp_path / "missing.binproto"), "--scenarios", womd_path]) == 2
+  assert "missing.binproto" in capsys.readouterr().err
+
+
+def test_log_replay_copies_the_logged_future(womd_path):
+  state, _ = womd.load(womd_path, to_jax=False)
+  result = wosac.Simulator(wosac.WosacConfig(eval=wosac.evaluation.EvalConfig(method="log"))).simulate(state, "x")
+  now = np.asarray(state.log_trajectory.valid[:, 10])
+  assert result.trajectories.shape == (32, int(now.sum()), 80, 4)
+  assert np.array_equal(result.trajectories[0], result.trajectories[31])
+  log_x = np.asarray(state.log_trajectory.x)[now, 11:]
+  future = np.asarray(state.log_trajectory.valid)[now, 11:]
+  assert np.array_equal(result.trajectories[0, ..., 0][future], log_x[future])
+  with pytest.raises(ValueError, match="log replay has no actor"):
+    wosac.make_actor(wosac.WosacConfig(eval=wosac.evaluation.EvalConfig(method="log")))
+
+
+@pytest.mark.skipif(not os.path.exists(os.path.join(os.path.dirname(__file__), "..", ".wosac-venv", "bin", "python")),
+                    reason="Waymo's evaluator is not installed: run `make wosac-env`")
+def test_the_official_evaluator_scores_log_replay_on_the_real_record(womd_path, tmp_path, capsys):
+  from experiments import wosac as cli
+  out = str(tmp_path / "log.binproto")
+  assert cli.main(["--scenarios", womd_path, "--method", "log", "--out", out, "--no-progress"]) == 0
+  assert cli.main(["--score", out, "--scenarios", womd_path, "--no-progress", "--workers", "1"]) == 0
+  result = json.loads((tmp_path / "log.wosac.json").read_text())
+  (scene,) = result["scenarios"].values()
+  assert scene["metrics"]["min_average_displacement_error"] == pytest.approx(0.0, abs=1e-4)
+  assert scene["buckets"]["realism_meta_metric"] == pytest.approx(0.6255, abs=2e-3)   # measured once
+  from pcdiff_jax import wosac_scoring
+  assert set(wosac_scoring.LIKELIHOODS) <= set(scene["metrics"])
