@@ -108,20 +108,26 @@ def make_actor(cfg: WosacConfig) -> tuple[Actor, Any]:
   return drive_all(actor, models, learned=True, ego=cfg.ego)
 
 
-def drive_all(actor: Actor, params: Any, learned: bool, ego: str = "method") -> tuple[Actor, Any]:
+def drive_all(actor: Actor, params: Any, learned: bool, ego: str = "method",
+              fallback: bool = True) -> tuple[Actor, Any]:
   """(actor, params) driving every sim agent: `actor` itself (a baseline
   over `sim_agents_mask`), or for a learned actor, IDM on every sim agent with
   the learned one (plus the SDC unless ego="idm") over it; ego="idm" hands
-  the SDC to IDM last. Later actors win where they control an object."""
+  the SDC to IDM last. Later actors win where they control an object.
+  fallback=False leaves the IDM fallback out: for a scene whose sim agents
+  the learned actor (and the IDM ego) control all of, the same rollouts up to
+  float rounding (every actor gets the same key), for less compute."""
   actors, all_params = [actor], [params]
   if learned:
-    fallback = idm.idm(controlled_fn=sim_agents_mask, name="idm-fallback")
-    actors, all_params = [fallback, with_sdc(actor) if ego == "method" else actor], [None, params]
+    learned_actor = with_sdc(actor) if ego == "method" else actor
+    actors, all_params = [learned_actor], [params]
+    if fallback:
+      actors, all_params = [idm.idm(controlled_fn=sim_agents_mask, name="idm-fallback")] + actors, [None] + all_params
   if ego == "idm":
     actors.append(idm.idm(controlled_fn=idm.sdc_only, name="idm-ego"))
     all_params.append(None)
   if len(actors) == 1:
-    return actor, params
+    return actors[0], all_params[0]
   return combine(actors, name="+".join(a.name for a in actors)), tuple(all_params)
 
 
@@ -170,16 +176,41 @@ def log_replay(state, num_rollouts: int) -> ScenarioResult:
 
 
 class Simulator:
-  """The jitted closed loop of one method, `rollouts_per_call` rollouts per call."""
+  """The jitted closed loop of one method, `rollouts_per_call` rollouts per
+  call. A learned method has two: with the IDM fallback, and without it for
+  the scenes whose every sim agent the learned actor drives (the same
+  rollouts up to float rounding, less compute; each compiles once per
+  object bucket)."""
 
   def __init__(self, cfg: WosacConfig):
     self.cfg = cfg
+    self.learned = self.run_alone = None
     if cfg.eval.method == LOG_REPLAY:
       cfg.validate()
       self.actor, self.params, self.run = None, None, None
       return
-    self.actor, self.params = make_actor(cfg)
+    if cfg.eval.method not in evaluation.LEARNED:
+      self.actor, self.params = make_actor(cfg)
+      self.run = evaluation.make_rollout_fn(self.actor, cfg.eval)
+      return
+    cfg.validate()
+    actor, models = evaluation.make_actor(dataclasses.replace(cfg.eval, ego="log"))
+    self.actor, self.params = drive_all(actor, models, learned=True, ego=cfg.ego)
     self.run = evaluation.make_rollout_fn(self.actor, cfg.eval)
+    alone, self.params_alone = drive_all(actor, models, learned=True, ego=cfg.ego, fallback=False)
+    self.learned = with_sdc(actor) if cfg.ego == "method" else actor
+    self.run_alone = evaluation.make_rollout_fn(alone, cfg.eval)
+
+  def needs_fallback(self, state) -> bool:
+    """Whether a sim agent of this (unbatched, loaded) scene is left to the
+    IDM fallback: the learned actor's controlled set at `init`, outside jit."""
+    from pcdiff_jax.sim import env
+    reset = env.reset(state, self.cfg.eval.init_steps)
+    inner = self.learned.init(jax.random.PRNGKey(0), reset)
+    covered = np.asarray(inner if isinstance(inner, jax.Array) else inner.controlled)
+    if self.cfg.ego == "idm":
+      covered = covered | np.asarray(reset.object_metadata.is_sdc)
+    return bool((np.asarray(sim_agents_mask(reset)) & ~covered).any())
 
   def simulate(self, state, scenario_id: str) -> ScenarioResult:
     """One loaded (unbatched) scenario -> its rollouts."""
@@ -196,9 +227,12 @@ class Simulator:
     calls = -(-cfg.num_rollouts // per_call)
     keys = jnp.concatenate([keys, jnp.repeat(keys[-1:], calls * per_call - cfg.num_rollouts, 0)])
     tiled = jax.tree_util.tree_map(lambda a: jnp.repeat(jnp.asarray(a)[None], per_call, 0), state)
+    run, params = self.run, self.params
+    if self.run_alone is not None and not self.needs_fallback(state):
+      run, params = self.run_alone, self.params_alone
     parts = []
     for c in range(calls):
-      final = self.run(tiled, keys[c * per_call:(c + 1) * per_call], self.params)
+      final = run(tiled, keys[c * per_call:(c + 1) * per_call], params)
       traj = final.sim_trajectory
       fields = jax.device_get((traj.x, traj.y, traj.z, traj.yaw, traj.valid))
       parts.append([np.asarray(f)[:, agents, current + 1:] for f in fields])

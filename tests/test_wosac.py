@@ -293,3 +293,30 @@ def test_the_official_evaluator_scores_log_replay_on_the_real_record(womd_path, 
   assert scene["buckets"]["realism_meta_metric"] == pytest.approx(0.6255, abs=2e-3)   # measured once
   from pcdiff_jax import wosac_scoring
   assert set(wosac_scoring.LIKELIHOODS) <= set(scene["metrics"])
+
+
+def test_the_fallback_is_left_out_only_where_it_drives_nobody(tiny_models):
+  """A scene whose sim agents the learned actor drives all of rolls out the
+  same without the IDM fallback (every actor gets the same key), up to the
+  rounding of a differently compiled program."""
+  import dataclasses
+  from conftest import make_scene
+  from pcdiff_jax import evaluation, policy
+  from pcdiff_jax.config import get_config
+  cfg = get_config("tiny")
+  state = make_scene(num_steps=91)
+  ev = evaluation.EvalConfig(method="pcdiff", ddim_steps=2, num_steps=80, init_steps=11)
+  rngs = jax.random.split(jax.random.PRNGKey(3), 2)
+  tiled = jax.tree_util.tree_map(lambda a: np.repeat(np.asarray(a)[None], 2, 0), state)
+  for max_agents, expect_fallback in ((4, False), (2, True)):
+    small = dataclasses.replace(cfg, features=dataclasses.replace(cfg.features, max_agents=max_agents))
+    runs = {}
+    for fallback in (True, False):
+      actor, params = wosac.drive_all(policy.actor(small), tiny_models, learned=True, fallback=fallback)
+      final = evaluation.make_rollout_fn(actor, ev)(tiled, rngs, params)
+      runs[fallback] = np.asarray(final.sim_trajectory.x)
+    sim = wosac.Simulator.__new__(wosac.Simulator)
+    sim.cfg, sim.learned = wosac.WosacConfig(eval=ev), wosac.with_sdc(policy.actor(small))
+    assert sim.needs_fallback(state) == expect_fallback
+    if not expect_fallback:
+      assert np.allclose(runs[True], runs[False], atol=1e-3)   # two compiled programs: float rounding
