@@ -17,10 +17,18 @@ import sys
 
 from experiments import _args
 from pcdiff_jax import evaluation
-from pcdiff_jax.policy import PolicyConfig
+from pcdiff_jax.policy import PolicyConfig, with_overrides
 from pcdiff_jax.config import MetricsConfig
 from pcdiff_jax.model.guidance import MODES as GUIDANCE_MODES
 from pcdiff_jax.model.guidance import GuidanceConfig
+
+
+def _policy_item(text: str) -> tuple[str, object]:
+  """'field=value' -> (field, value); a comma-separated value is a tuple."""
+  name, sep, value = text.partition("=")
+  if not sep or not name:
+    raise argparse.ArgumentTypeError(f"expected FIELD=VALUE, got {text!r}")
+  return name, tuple(value.split(",")) if "," in value else value
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -95,6 +103,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                  default=evaluation.EvalConfig.start_gate,
                  help="pcdiff: a (nearly) stopped agent starts only when its plan carries it at least "
                       "METRES within SECONDS (0 0 = off)")
+  p.add_argument("--policy", nargs="+", default=[], metavar="FIELD=VALUE", type=_policy_item,
+                 help="pcdiff: set any `policy.PolicyConfig` field, e.g. --policy max_curvature=0.3 "
+                      "jerk_limit=1.5,5 (tuples comma-separated)")
   p.add_argument("--simpl-ar-sample", action="store_true",
                  help="simpl-ar: draw each agent's mode by its probability (default: the top mode)")
   p.add_argument("--num-rollouts", type=int, default=1,
@@ -179,6 +190,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.error("--eta must be >= 0")
   if args.max_step <= 0:
     p.error("--max-step must be > 0")
+  try:
+    with_overrides(PolicyConfig(), args.policy)
+  except (ValueError, TypeError) as err:
+    p.error(f"--policy: {err}")
   return args
 
 
@@ -206,6 +221,7 @@ def main(argv=None) -> int:
                               select_proposal_scale=args.select_proposal_scale,
                               stop_hold=args.stop_hold,
                               start_gate=tuple(args.start_gate),
+                              policy_overrides=tuple(args.policy),
                               metrics=MetricsConfig(max_reactive_agents=args.max_agents),
                               guidance=GuidanceConfig(
                                   mode=args.guidance, w_map=args.w_map, w_coll=args.w_coll,

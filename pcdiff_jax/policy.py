@@ -250,6 +250,7 @@ class PolicyConfig:
   stop_hold: bool = True
   start_gate: tuple[float, float] = (0.0, 0.0)
   max_curvature: float = 0.0
+  still_gate: tuple[float, float] = (0.0, 0.0)
 
 
 @struct.dataclass
@@ -325,6 +326,9 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
   feats = features_lib.scene_features(state, cfg.features, keep=controlled)
   batched = jax.tree_util.tree_map(lambda a: a[None], feats)
   cond = planner.condition(models.encoder, models.stats, batched, cfg)
+  hold = None
+  if policy.still_gate[0] > 0:
+    hold = still_agents(cond, models.stats, cfg, *policy.still_gate)[0]                  # (A,)
   if policy.prior_centre == "top1":
     cond = planner.centre_on_top_mode(cond)
   init_noise = None if noise is None else noise[feats.agent_index][None]   # (1, A, d)
@@ -366,6 +370,8 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
                        policy.select_proposal_weight, policy.select_proposal_scale,
                        policy.select_neighbours)
   actions = dynamics.clip_action(latent.decode(y0[0], models.stats), cfg.kinematics)  # (A, T, 2)
+  if hold is not None:
+    actions = jnp.where(hold[:, None, None], stop_plan(cond.speed[0], actions.shape[1], cfg), actions)
   if policy.execute == "track":   # the world-frame path is only needed to track it
     states = dynamics.rollout(latent.initial_states(cond.speed[0]), actions, cfg.kinematics.dt)
     path, _ = features_lib.agent_to_world(states[..., :2], states[..., 2], feats)      # (A, T, 2)
@@ -375,6 +381,28 @@ def plan_actions(models: Models, state: SimulatorState, cfg: Config, policy: Pol
   per_object = features_lib.scatter_to_objects(actions, feats, num_objects)
   planned = features_lib.scatter_to_objects(feats.agent_valid, feats, num_objects, fill=False)
   return per_object, planned.astype(bool), features_lib.scatter_to_objects(path, feats, num_objects)
+
+
+def still_agents(cond: planner.Conditioning, stats: latent.LatentStats, cfg: Config, seconds: float,
+                 metres: float) -> Array:
+  """(..., A) the agents the scene keeps still (`PolicyConfig.still_gate`): slower
+  than START_GATE_SPEED and carried less than `metres` within `seconds` by their
+  proposals, each proposal's distance weighted by its probability. The
+  encoder's proposals read the map, the lights and the other agents, so a car
+  queued at a light that turns green is let go while a parked one is not."""
+  steps = max(1, min(round(seconds / cfg.kinematics.dt), cfg.encoder.horizon))
+  states = latent.rollout(cond.proposals, cond.speed[..., None], stats, cfg.kinematics)  # (..., A, K, T, 4)
+  travelled = jnp.max(jnp.hypot(states[..., :steps, 0], states[..., :steps, 1]), axis=-1)   # (..., A, K)
+  expected = jnp.sum(cond.probs * travelled, axis=-1)
+  return (jnp.abs(cond.speed) < START_GATE_SPEED) & (expected < metres)
+
+
+def stop_plan(speed: Array, horizon: int, cfg: Config) -> Array:
+  """(A, T, 2) plans that bring agents moving at `speed` (A,) to a stop in one
+  step, within the braking bound, and then hold them: no yaw rate."""
+  first = jnp.stack([-speed / cfg.kinematics.dt, jnp.zeros_like(speed)], -1)             # (A, 2)
+  plan = jnp.zeros(speed.shape + (horizon, 2)).at[:, 0].set(first)
+  return dynamics.clip_action(plan, cfg.kinematics)
 
 
 def warm_centres(cond: planner.Conditioning, previous: Array, has: Array, proposals: int) -> Array:
@@ -639,6 +667,8 @@ def validate(cfg: Config, policy: PolicyConfig) -> None:
     raise ValueError(f"select_proposal_scale must be > 0 (m), got {policy.select_proposal_scale}")
   if len(policy.start_gate) != 2 or not all(g >= 0 for g in policy.start_gate):
     raise ValueError(f"start_gate must be (seconds, metres) >= 0, got {policy.start_gate}")
+  if len(policy.still_gate) != 2 or not all(g >= 0 for g in policy.still_gate):
+    raise ValueError(f"still_gate must be (seconds, metres) >= 0, got {policy.still_gate}")
   if policy.max_curvature < 0:
     raise ValueError(f"max_curvature must be >= 0 (1/m; 0: off), got {policy.max_curvature}")
   most = min(policy.select_samples - 1, cfg.encoder.num_modes)

@@ -521,3 +521,39 @@ def test_policy_fields_are_set_by_name_with_their_types():
   assert cfg.select_samples == 4 and cfg.ensemble_brake_weight == 0.3
   with pytest.raises(ValueError, match="unknown policy field 'speed'.*max_curvature"):
     policy.with_overrides(policy.PolicyConfig(), [("speed", "1")])
+
+
+def test_still_gate_keeps_agents_the_proposals_keep_still(models):
+  """still_gate: an agent slower than START_GATE_SPEED whose proposals (probability-weighted)
+  travel less than `metres` within `seconds` gets a plan that stops it and holds it: in closed
+  loop it stays exactly where it is, heading included; a gate nothing passes under (0 m) changes
+  nothing, and a fast agent is never held."""
+  from pcdiff_jax.sim import dynamics
+  scene = make_scene(num_steps=91, speeds=(10.0, 0.0, 0.3, 8.0))
+  base = policy.PolicyConfig(ddim_steps=2, select_samples=1, warm_start=False, temporal_ensemble=(0.0, 0.0))
+  held_cfg = dataclasses.replace(base, still_gate=(2.0, 1e3))
+  free_cfg = dataclasses.replace(base, still_gate=(2.0, 0.0))
+  state = env.reset(scene)
+  rng = jax.random.key(3)
+  plan = lambda c: np.asarray(jax.jit(lambda s, r: policy.plan_actions(models, s, CFG, c, r)[0])(state, rng))
+  free = plan(base)
+  np.testing.assert_allclose(plan(free_cfg), free, atol=1e-5)   # separate programs: float order only
+  held = plan(held_cfg)
+  np.testing.assert_allclose(held[1], 0.0, atol=1e-6)                       # stopped: nothing to do
+  np.testing.assert_allclose(held[2, 0], [-3.0, 0.0], atol=1e-5)            # 0.3 m/s: one braking step
+  np.testing.assert_allclose(held[2, 1:], 0.0, atol=1e-6)
+  np.testing.assert_allclose(held[3], free[3], atol=1e-5)                    # 8 m/s: never held
+  act = policy.actor(CFG, held_cfg)
+  select = jax.jit(act.select_action)
+  start = np.asarray(state.current_sim_trajectory.xy)[1, 0], np.asarray(state.current_sim_trajectory.yaw)[1, 0]
+  ps = act.init(jax.random.key(0), state)
+  for k in range(4):
+    out = select(models, state, ps, jax.random.key(k))
+    ps = out.actor_state
+    state = env.step(state, out.action, out.is_controlled)
+  np.testing.assert_allclose(np.asarray(state.current_sim_trajectory.xy)[1, 0], start[0], atol=1e-5)
+  np.testing.assert_allclose(np.asarray(state.current_sim_trajectory.yaw)[1, 0], start[1], atol=1e-6)
+  speed = np.asarray(dynamics.states_from_trajectory(state.current_sim_trajectory))[1:3, 0, dynamics.V]
+  np.testing.assert_allclose(speed, 0.0, atol=1e-5)
+  with pytest.raises(ValueError, match="still_gate"):
+    policy.actor(CFG, policy.PolicyConfig(still_gate=(2.0, -1.0)))
