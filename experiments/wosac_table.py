@@ -6,7 +6,8 @@
 For each method: `python -m experiments.wosac --method M --out OUT/M.binproto`
 (skipped when that file exists), then `--score` with Waymo's evaluator
 (`make wosac-env`; skipped when OUT/M.wosac.json exists), then one markdown
-row per method in OUT/table.md. `log` is log replay (the logged future, 32
+row per method in OUT/table.md; OUT/M.export.json holds the export's CPU and
+wall seconds (the whole process, compilation included). `log` is log replay (the logged future, 32
 copies): the reference, never a valid submission. Scoring costs about a minute
 per scene and method on 2 cores: --max-scenarios N takes the first N scenes.
 """
@@ -15,8 +16,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import subprocess
 import sys
+import time
 
 LEARNED = ("pcdiff", "pcdiff-noprior", "simpl-ar")
 METHODS = ("log", "cv", "idm") + LEARNED
@@ -47,9 +50,15 @@ def main(argv=None) -> int:
       if method in LEARNED:
         cmd += ["--checkpoint", args.checkpoint] + args.extra.split()
       print("+", " ".join(cmd), flush=True)
+      before, t0 = resource.getrusage(resource.RUSAGE_CHILDREN), time.perf_counter()
       if subprocess.call(cmd) != 0:
         print(f"error: the export of {method} failed", file=sys.stderr)
         return 2
+      after = resource.getrusage(resource.RUSAGE_CHILDREN)
+      cost = {"cpu_seconds": after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime,
+              "wall_seconds": time.perf_counter() - t0, "command": " ".join(cmd)}
+      with open(os.path.join(args.out, f"{method}.export.json"), "w") as f:
+        json.dump(cost, f, indent=1)   # the whole process: start-up and compilation included
     scores = os.path.join(args.out, f"{method}.wosac.json")
     if not os.path.exists(scores):
       cmd = base + ["--score", sub, "--workers", str(args.workers)]
