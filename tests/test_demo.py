@@ -10,6 +10,7 @@ import pytest
 from experiments import demo
 
 
+@pytest.mark.slow
 def test_demo_train_runs_both_stages_on_its_scenes_and_stops_on_failure(tmp_path, monkeypatch):
   """`--train` hands its scenes to `experiments.train --stage all` (tested on its
   own in test_training); a failing step stops the demo with its name."""

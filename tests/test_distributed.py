@@ -47,6 +47,7 @@ def four_devices(tmp_path_factory) -> dict:
   return json.loads((out / "result.json").read_text())
 
 
+@pytest.mark.slow
 def test_data_parallel_training_gives_the_one_device_loss_curve(four_devices):
   t = four_devices["train"]
   assert len(t["one_device"]) == STEPS and np.all(np.isfinite(t["one_device"]))
@@ -59,6 +60,7 @@ def test_data_parallel_training_gives_the_one_device_loss_curve(four_devices):
                            "batch": "P('data',)", "batch_rows_per_device": BATCH // DEVICES}
 
 
+@pytest.mark.slow
 def test_sharded_evaluation_gives_the_one_device_results(four_devices):
   r = four_devices["rollout"]
   assert r["devices"] == [1, DEVICES]
@@ -78,6 +80,7 @@ def test_real_stage_and_learned_policy_on_four_devices(four_devices):
   assert r["moved"] > 0.1
 
 
+@pytest.mark.slow
 def test_cli_refuses_a_batch_that_does_not_split(four_devices):
   assert four_devices["cli"]["train_batch_3"] == 2
   assert "multiple of the 4 device(s)" in four_devices["cli"]["train_batch_3_err"]

@@ -9,6 +9,7 @@ import os
 import pathlib
 
 import nbformat
+import pytest
 from nbclient import NotebookClient
 
 from pcdiff_jax import shipped
@@ -59,6 +60,7 @@ def test_committed_notebook_shows_a_full_run_of_the_shipped_model():
   assert NOTEBOOK.stat().st_size < 3_000_000
 
 
+@pytest.mark.slow
 def test_notebook_executes_shrunk(monkeypatch):
   # The kernel inherits this environment. XLA's backend optimisations off: the three closed-loop
   # programs of ours (unguided, objective, adversarial) compile about 30% faster, and a 4-step

@@ -165,6 +165,7 @@ def test_family_weights_are_complete():
   assert {f for f, _ in DEFAULT_FAMILY_WEIGHTS} == set(FAMILIES)
 
 
+@pytest.mark.slow
 def test_make_data_cli_shards_resume_and_bytes(tmp_path):
   from experiments import make_data
   out1, out2 = str(tmp_path / "a"), str(tmp_path / "b")

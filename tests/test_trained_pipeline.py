@@ -19,6 +19,7 @@ from pcdiff_jax.config import get_config
 from pcdiff_jax.model import planner
 
 CFG = get_config("tiny")
+pytestmark = pytest.mark.slow   # trains a tiny model through the CLI first (minutes on 2 cores)
 
 
 def _train(argv):

@@ -234,6 +234,7 @@ def test_reset_fills_like_waymax(real_state):
   assert not np.asarray(s.object_metadata.is_controlled).any()
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(importlib.util.find_spec("waymax") is None,
                     reason="waymax is not installed (it is not on the package registry: "
                            "pip install git+https://github.com/waymo-research/waymax to run this)")
