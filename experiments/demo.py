@@ -11,7 +11,11 @@
 3. rolls out ours, SIMPL-AR, IDM and constant velocity in closed loop on
    the val scenes, 80 steps at 10 Hz (OUT/eval/METHOD: metrics, GIFs),
 4. prints the metrics table and writes it to OUT/table.md,
-5. runs ours in closed loop on the real WOMD sample when it is there
+5. rolls out log replay, ours and the baselines on the first --num-real real
+   WOMD val scenes when they are there (`--real-scenes`, default
+   ../shared/data/womd_real/val.scenario.tfrecord; OUT/eval/real/METHOD, with
+   GIFs) and prints their table (OUT/table.md),
+6. runs ours in closed loop on the real WOMD sample when it is there
    (`--real`, default ../shared/data/womd/...; OUT/eval/real-pcdiff).
 
 Every step resumes: re-running skips finished shards, continues training from
@@ -32,7 +36,9 @@ from pcdiff_jax import shipped
 from pcdiff_jax.config import get_config
 
 METHODS = ("pcdiff", "simpl-ar", "idm", "cv")
-LABELS = {"pcdiff": ("ours (prior, 5 DDIM steps, then warm-started; "
+REAL_VAL = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "womd_real",
+                        "val.scenario.tfrecord")
+LABELS = {"log": "log replay (the recorded drivers)", "pcdiff": ("ours (prior, 5 DDIM steps, then warm-started; "
                      "8 samples, the least colliding and off-road kept)"),
           "simpl-ar": "SIMPL-AR", "idm": "IDM", "cv": "constant velocity"}
 
@@ -56,8 +62,13 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--batch-size", type=int, default=4, help="scenarios per jitted closed-loop call")
   p.add_argument("--real", default=make_data.REAL_SAMPLE,
                  help="a real WOMD record to run ours on at the end (skipped when absent)")
+  p.add_argument("--real-scenes", default=REAL_VAL,
+                 help="real WOMD scenes to roll every method out on too (skipped when absent)")
+  p.add_argument("--num-real", type=int, default=3, help="how many of --real-scenes (0: none)")
   p.add_argument("--no-progress", action="store_true")
   args = p.parse_args(argv)
+  if args.num_real < 0:
+    p.error("--num-real must be >= 0")
   if args.num_train < 8 or args.num_val < 1:
     p.error("--num-train must be >= 8 and --num-val >= 1")
   if args.train and args.checkpoint:
@@ -76,19 +87,20 @@ def _run(name: str, main, argv: list[str]) -> None:
   print(f"== {name}: done in {time.perf_counter() - t0:.0f} s", flush=True)
 
 
-def table(out: str, methods) -> str:
-  """Markdown table of OUT/eval/METHOD/metrics.json (missing runs are skipped)."""
-  rows = ["| method | collision (%) | off-road (%) | realism (W1) | minADE (m) | ms / replan |",
-          "|---|---|---|---|---|---|"]
+def table(out: str, methods, folder: str = "eval") -> str:
+  """Markdown table of OUT/FOLDER/METHOD/metrics.json (missing runs are skipped)."""
+  rows = ["| method | collision (%) | off-road (%) | realism (W1) | minADE (m) | still moved (%) | ms / replan |",
+          "|---|---|---|---|---|---|---|"]
   for m in methods:
-    path = os.path.join(out, "eval", m, "metrics.json")
+    path = os.path.join(out, folder, m, "metrics.json")
     if not os.path.exists(path):
       continue
     with open(path) as f:
       r = json.load(f)
     rows.append(f"| {LABELS[m]} | {100 * r['collision_rate']['mean']:.1f} | "
                 f"{100 * r['offroad_rate']['mean']:.1f} | {r['realism']['mean']:.2f} | "
-                f"{r['min_ade']['mean']:.2f} | {r['runtime_ms_per_replan']['mean']:.1f} |")
+                f"{r['min_ade']['mean']:.2f} | {100 * r['still_moved_rate']['mean']:.1f} | "
+                f"{r['runtime_ms_per_replan']['mean']:.1f} |")
   return "\n".join(rows) + "\n"
 
 
@@ -121,6 +133,15 @@ def main(argv=None) -> int:
     if method == "pcdiff" and not args.warm_start:
       argv += ["--no-warm-start"]
     _run(f"closed loop: {method}", rollout.main, argv + quiet)
+  real_methods = ["log"] + list(args.methods)
+  real = args.num_real > 0 and os.path.exists(args.real_scenes)
+  for method in real_methods if real else ():
+    argv = ["--scenarios", args.real_scenes, "--max-scenarios", str(args.num_real), "--method", method,
+            "--out", os.path.join(args.out, "eval", "real", method), "--batch-size", str(args.batch_size),
+            "--max-agents", str(max_agents), "--gifs", str(args.num_real)]
+    if method in ("pcdiff", "simpl-ar"):
+      argv += ["--checkpoint", model]
+    _run(f"closed loop on real WOMD val scenes: {method}", rollout.main, argv + quiet)
   if "pcdiff" in args.methods and os.path.exists(args.real):
     _run("closed loop on the real WOMD sample: pcdiff", rollout.main, [
         "--scenarios", args.real, "--method", "pcdiff", "--checkpoint", model,
@@ -130,6 +151,10 @@ def main(argv=None) -> int:
   minutes = (time.perf_counter() - t0) / 60
   header = (f"# Demo: {args.num_val} synthetic val scenes, 80 closed-loop steps at 10 Hz, up to "
             f"{max_agents} reactive agents, the SDC replays its log\n\n")
+  if real:
+    header_real = (f"\n# The first {args.num_real} real WOMD val scenes ({args.real_scenes}), the same "
+                   "setting, log replay first\n\n")
+    text += header_real + table(args.out, real_methods, os.path.join("eval", "real"))
   with open(os.path.join(args.out, "table.md"), "w") as f:
     f.write(header + text + f"\nTotal time {minutes:.1f} min.\n")
   print("\n" + header + text)

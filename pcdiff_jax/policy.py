@@ -249,8 +249,8 @@ class PolicyConfig:
   warm_proposals: int = 0
   stop_hold: bool = True
   start_gate: tuple[float, float] = (0.0, 0.0)
-  max_curvature: float = 0.0
-  still_gate: tuple[float, float] = (0.0, 0.0)
+  max_curvature: float = 0.3
+  still_gate: tuple[float, float] = (2.0, 1.0)
 
 
 @struct.dataclass
@@ -391,8 +391,10 @@ def still_agents(cond: planner.Conditioning, stats: latent.LatentStats, cfg: Con
   encoder's proposals read the map, the lights and the other agents, so a car
   queued at a light that turns green is let go while a parked one is not."""
   steps = max(1, min(round(seconds / cfg.kinematics.dt), cfg.encoder.horizon))
-  states = latent.rollout(cond.proposals, cond.speed[..., None], stats, cfg.kinematics)  # (..., A, K, T, 4)
-  travelled = jnp.max(jnp.hypot(states[..., :steps, 0], states[..., :steps, 1]), axis=-1)   # (..., A, K)
+  actions = dynamics.clip_action(latent.decode(cond.proposals, stats)[..., :steps, :], cfg.kinematics)
+  speed = jnp.broadcast_to(cond.speed[..., None], cond.proposals.shape[:-1])             # (..., A, K)
+  states = dynamics.rollout(latent.initial_states(speed), actions, cfg.kinematics.dt)    # (..., A, K, steps, 4)
+  travelled = jnp.max(jnp.hypot(states[..., 0], states[..., 1]), axis=-1)                # (..., A, K)
   expected = jnp.sum(cond.probs * travelled, axis=-1)
   return (jnp.abs(cond.speed) < START_GATE_SPEED) & (expected < metres)
 

@@ -530,7 +530,8 @@ def test_still_gate_keeps_agents_the_proposals_keep_still(models):
   nothing, and a fast agent is never held."""
   from pcdiff_jax.sim import dynamics
   scene = make_scene(num_steps=91, speeds=(10.0, 0.0, 0.3, 8.0))
-  base = policy.PolicyConfig(ddim_steps=2, select_samples=1, warm_start=False, temporal_ensemble=(0.0, 0.0))
+  base = policy.PolicyConfig(ddim_steps=2, select_samples=1, warm_start=False, temporal_ensemble=(0.0, 0.0),
+                             still_gate=(0.0, 0.0))
   held_cfg = dataclasses.replace(base, still_gate=(2.0, 1e3))
   free_cfg = dataclasses.replace(base, still_gate=(2.0, 0.0))
   state = env.reset(scene)

@@ -197,7 +197,7 @@ def test_demo_pipeline_runs_end_to_end(tiny_trained, tmp_path):
   out = str(tmp_path / "demo")
   model = tiny_trained["shipped"]                   # a shipped folder, as `make demo` loads
   code = demo.main(["--out", out, "--checkpoint", model, "--num-val", "2", "--methods", "pcdiff", "cv",
-                    "--batch-size", "2", "--real", "/nonexistent", "--no-progress"])
+                    "--batch-size", "2", "--real", "/nonexistent", "--num-real", "1", "--no-progress"])
   assert code == 0
   for method in ("pcdiff", "cv"):
     with open(os.path.join(out, "eval", method, "metrics.json")) as f:
@@ -207,6 +207,11 @@ def test_demo_pipeline_runs_end_to_end(tiny_trained, tmp_path):
   with open(os.path.join(out, "table.md")) as f:
     text = f.read()
   assert "ours (prior, 5 DDIM steps" in text and "constant velocity" in text
+  if os.path.exists(demo.REAL_VAL):   # every method, log replay first, on a real val scene too
+    assert "real WOMD val scenes" in text and "log replay" in text
+    for method in ("log", "pcdiff", "cv"):
+      with open(os.path.join(out, "eval", "real", method, "metrics.json")) as f:
+        assert json.load(f)["num_scenarios"] == 1
   # The closed-loop diagnostics run on the same model.
   from experiments import diagnose
   val = os.path.join(out, "data", "val-00000-of-00001.tfrecord")
