@@ -1,0 +1,75 @@
+"""The policy package reproduces the single-module policy it replaced, bit for bit on CPU.
+
+tests/data/policy_rollouts.npz holds short closed-loop rollouts (and one stateless `policy.step`)
+recorded with the policy before it was split into `pcdiff_jax/policy/`; regenerate it only on
+purpose, for a change meant to move the numbers:
+`PYTHONPATH=. python tests/test_policy_package.py` (from the repository root, on CPU).
+"""
+from __future__ import annotations
+
+import pathlib
+
+import jax
+import numpy as np
+import pytest
+
+from conftest import build_tiny_models, make_scene
+from pcdiff_jax import policy
+from pcdiff_jax.config import get_config
+from pcdiff_jax.model import guidance as guidance_lib
+from pcdiff_jax.sim import env
+
+CFG = get_config("tiny")
+REFERENCE = pathlib.Path(__file__).parent / "data" / "policy_rollouts.npz"
+NUM_STEPS = 5
+# name -> PolicyConfig: the defaults, the new gates on the executed action, and the other branches
+# of planning (track execution, consistent noise, top-1 prior centre, cold plans, guidance).
+SETTINGS = {
+    "defaults": policy.PolicyConfig(),
+    "gates": policy.PolicyConfig(still_gate=(2.0, 2.0), max_curvature=0.05),
+    "track": policy.PolicyConfig(execute="track", consistent_noise=True, prior_centre="top1",
+                                 replan_every=2, select_samples=2, jerk_limit=(1.0, 0.0)),
+    "cold_guided": policy.PolicyConfig(warm_start=False, select_samples=1, ddim_steps=2,
+                                       temporal_ensemble=(0.0, 0.0), stop_hold=False,
+                                       guidance=guidance_lib.GuidanceConfig(mode="objective")),
+}
+
+
+def _scene():
+  # Object 2 is stopped (the still gate's case) and object 3 crawls.
+  return env.reset(make_scene(num_steps=91, speeds=(10.0, 8.0, 0.0, 0.3)))
+
+
+def _outputs(models) -> dict[str, np.ndarray]:
+  """{name: array} for every setting: the rollout's executed actions (T, O, 2), their valid mask
+  (T, O, 1) and the simulated poses and speeds (O, 91) at its end; and one stateless step."""
+  state, out = _scene(), {}
+  for name, pol in SETTINGS.items():
+    run = jax.jit(lambda s, r, m, pol=pol: env.rollout(s, policy.actor(CFG, pol), NUM_STEPS, r, params=m))
+    res = jax.device_get(run(state, jax.random.key(3), models))
+    traj = res.final_state.sim_trajectory
+    out[f"{name}/action"] = np.asarray(res.actions.data)
+    out[f"{name}/valid"] = np.asarray(res.actions.valid)
+    out[f"{name}/controlled"] = np.asarray(res.is_controlled)
+    for field in ("x", "y", "yaw", "vel_x", "vel_y"):
+      out[f"{name}/{field}"] = np.asarray(getattr(traj, field))
+  step = jax.jit(lambda s, r, m: policy.step(s, m, CFG, r, SETTINGS["gates"]))
+  action, controlled = jax.device_get(step(state, jax.random.key(4), models))
+  out["step/action"], out["step/valid"] = np.asarray(action.data), np.asarray(action.valid)
+  out["step/controlled"] = np.asarray(controlled)
+  return out
+
+
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="the reference was recorded on CPU")
+def test_rollouts_match_the_single_module_policy(tiny_models):
+  reference = np.load(REFERENCE)
+  got = _outputs(tiny_models)
+  assert sorted(got) == sorted(reference.files)
+  for key in reference.files:
+    np.testing.assert_array_equal(got[key], reference[key], err_msg=key)
+
+
+if __name__ == "__main__":
+  REFERENCE.parent.mkdir(exist_ok=True)
+  np.savez_compressed(REFERENCE, **_outputs(build_tiny_models()))
+  print(f"wrote {REFERENCE} ({REFERENCE.stat().st_size} bytes)")
