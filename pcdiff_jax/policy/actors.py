@@ -96,9 +96,7 @@ def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
     y0 = selection.select(y0, models, scene, cfg, policy, ps.adversary, ps.road)               # (1, A, d)
     plan, plan_valid, path = planning.decode(y0, models, scene, state, cfg, policy)
     if any(policy.temporal_ensemble):
-      plan = execution.ensemble_plans(ps.plan, ps.plan_valid, ps.age, plan, plan_valid, policy.temporal_ensemble,
-                                      policy.ensemble_brake_weight, policy.ensemble_brake_margin,
-                                      policy.ensemble_pass == "both")
+      plan = execution.ensemble_plans(ps.plan, ps.plan_valid, ps.age, plan, plan_valid, policy.temporal_ensemble)
     return plan, plan_valid, path
 
   def select_action(models, state, ps: PlanState, rng):

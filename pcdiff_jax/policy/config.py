@@ -2,8 +2,6 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import Optional
-
 from pcdiff_jax.config import Config
 from pcdiff_jax.model import guidance as guidance_lib
 
@@ -59,11 +57,8 @@ class PolicyConfig:
       a parked car does not spin in place; 0 is off. still_gate and max_curvature are being
       measured ("Ablation: the real WOMD sample record").
 
-  Options measured without gain: ensemble_brake_weight, ensemble_brake_margin, ensemble_pass
-  (a lighter ensemble where the new plan brakes harder, or differs by more than the margin),
-  select_proposal_weight, select_proposal_scale (a sample also costs its `proposal_nll`),
-  warm_proposals (warm samples 1..n start from the n likeliest proposals), start_gate (a slow
-  agent starts only on a plan that carries it `metres` within `seconds`); off by default.
+  Options that were measured without gain are gone; CHANGELOG.md keeps their results.
+
   """
   ddim_steps: int = 5
   eta: float = 0.0
@@ -78,20 +73,13 @@ class PolicyConfig:
   warm_step: int = 90
   warm_ddim_steps: int = 1
   temporal_ensemble: tuple[float, float] = (0.7, 0.0)
-  ensemble_brake_weight: Optional[float] = None
-  ensemble_brake_margin: float = 0.0
-  ensemble_pass: str = "brake"
   select_samples: int = 8
   select_lookahead: int = 30
   select_map_weight: float = 30.0
   select_stride: int = 3
   select_neighbours: int = 16
-  select_proposal_weight: float = 0.0
-  select_proposal_scale: float = 1.0
   jerk_limit: tuple[float, float] = (1.5, 5.0)
-  warm_proposals: int = 0
   stop_hold: bool = True
-  start_gate: tuple[float, float] = (0.0, 0.0)
   max_curvature: float = 0.0
   still_gate: tuple[float, float] = (0.0, 0.0)
 
@@ -113,8 +101,6 @@ def with_overrides(policy: PolicyConfig, overrides) -> PolicyConfig:
       value = tuple(type(d)(v) for d, v in zip(default, value))
     elif isinstance(default, bool):
       value = value if isinstance(value, bool) else str(value).lower() in ("1", "true", "yes", "on")
-    elif default is None:   # the optional floats (ensemble_brake_weight)
-      value = None if str(value).lower() == "none" else float(value)
     else:
       value = type(default)(value)
     changes[name] = value
@@ -136,10 +122,6 @@ def validate(cfg: Config, policy: PolicyConfig) -> None:
   if len(policy.temporal_ensemble) != 2 or not all(0.0 <= m < 1.0 for m in policy.temporal_ensemble):
     raise ValueError(f"temporal_ensemble must be two weights in [0, 1) (acceleration, yaw rate), "
                      f"got {policy.temporal_ensemble}")
-  if policy.ensemble_pass not in ("brake", "both"):
-    raise ValueError(f"ensemble_pass must be 'brake' or 'both', got {policy.ensemble_pass!r}")
-  if policy.ensemble_brake_weight is not None and not 0.0 <= policy.ensemble_brake_weight < 1.0:
-    raise ValueError(f"ensemble_brake_weight must be None or in [0, 1), got {policy.ensemble_brake_weight}")
   if not 1 <= policy.warm_ddim_steps <= policy.warm_step + 1:
     raise ValueError(f"warm_ddim_steps must be in [1, warm_step + 1 = {policy.warm_step + 1}], "
                      f"got {policy.warm_ddim_steps}")
@@ -155,18 +137,8 @@ def validate(cfg: Config, policy: PolicyConfig) -> None:
     raise ValueError(f"select_neighbours must be >= 0 (0: every pair), got {policy.select_neighbours}")
   if policy.select_map_weight < 0:
     raise ValueError(f"select_map_weight must be >= 0, got {policy.select_map_weight}")
-  if policy.select_proposal_weight < 0:
-    raise ValueError(f"select_proposal_weight must be >= 0, got {policy.select_proposal_weight}")
-  if policy.select_proposal_scale <= 0:
-    raise ValueError(f"select_proposal_scale must be > 0 (m), got {policy.select_proposal_scale}")
-  if len(policy.start_gate) != 2 or not all(g >= 0 for g in policy.start_gate):
-    raise ValueError(f"start_gate must be (seconds, metres) >= 0, got {policy.start_gate}")
   if len(policy.still_gate) != 2 or not all(g >= 0 for g in policy.still_gate):
     raise ValueError(f"still_gate must be (seconds, metres) >= 0, got {policy.still_gate}")
   if policy.max_curvature < 0:
     raise ValueError(f"max_curvature must be >= 0 (1/m; 0: off), got {policy.max_curvature}")
-  most = min(policy.select_samples - 1, cfg.encoder.num_modes)
-  if not 0 <= policy.warm_proposals <= most:
-    raise ValueError(f"warm_proposals must be in [0, min(select_samples - 1, num_modes) = {most}], "
-                     f"got {policy.warm_proposals}")
   policy.guidance.validate()

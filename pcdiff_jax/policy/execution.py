@@ -1,20 +1,17 @@
 """Execution: from a plan to the action executed now, through the filters on it.
 
 `execute` takes the plan's current step (or pure pursuit of its path), then, as PolicyConfig
-turns them on, limits the jerk, holds braking at standstill, gates starts and bounds the
-curvature; `ensemble_plans` blends consecutive plans before that (temporal ensembling). The plan
+turns them on, limits the jerk, holds braking at standstill and bounds the curvature; `ensemble_plans` blends consecutive plans before that (temporal ensembling). The plan
 itself is never changed by a filter: the next replan starts from the state the filtered action
 led to.
 """
 from __future__ import annotations
 
-from typing import Optional
-
 import jax.numpy as jnp
 
 from pcdiff_jax.config import Config
 from pcdiff_jax.policy.config import PolicyConfig
-from pcdiff_jax.policy.planning import START_GATE_SPEED, advance_plan
+from pcdiff_jax.policy.planning import advance_plan
 from pcdiff_jax.sim import datatypes, dynamics, geometry
 from pcdiff_jax.sim.datatypes import Action, Array, ObjectType, SimulatorState
 
@@ -32,10 +29,6 @@ def execute(state: SimulatorState, plan: Array, path: Array, age, policy: Policy
     now = limit_jerk(state, now, policy.jerk_limit, cfg.kinematics.dt)
   if policy.stop_hold:
     now = hold_at_stop(state, now, cfg.kinematics.dt)
-  if policy.start_gate[0] > 0:
-    seconds, metres = policy.start_gate
-    window = advance_plan(plan, age)[:, :max(1, round(seconds / cfg.kinematics.dt))]
-    now = gate_start(state, now, window, metres, cfg.kinematics.dt)
   if policy.max_curvature > 0:
     now = limit_curvature(state, now, policy.max_curvature, cfg.kinematics.dt)
   return now
@@ -51,23 +44,16 @@ def controlled_action(state: SimulatorState, controlled: Array, planned: Array, 
 
 
 def ensemble_plans(previous: Array, previous_valid: Array, executed: Array, plan: Array,
-                   plan_valid: Array, weight, brake_weight: Optional[float] = None,
-                   brake_margin: float = 0.0, pass_both: bool = False) -> Array:
+                   plan_valid: Array, weight) -> Array:
   """(O, T, 2) weight * previous + (1 - weight) * plan over the steps both
   cover, with `previous` advanced by the `executed` actions (a traced int);
   the new plan alone where the previous one has ended or an agent had none.
-  weight: () or one per action channel (2,). brake_weight: the acceleration
-  channel's weight where the new plan's acceleration is below the previous
-  one's by more than brake_margin (pass_both: differs from it by more)."""
+  weight: () or one per action channel (2,)."""
   horizon = plan.shape[1]
   both = ((jnp.arange(horizon) < horizon - executed)[None, :, None]
           & (previous_valid & plan_valid)[:, None, None])
   previous = advance_plan(previous, executed)
   weight = jnp.broadcast_to(jnp.asarray(weight, plan.dtype), plan.shape)
-  if brake_weight is not None:
-    gap = previous[..., 0] - plan[..., 0]
-    brakes = (jnp.abs(gap) if pass_both else gap) > brake_margin
-    weight = weight.at[..., 0].set(jnp.where(brakes, jnp.asarray(brake_weight, plan.dtype), weight[..., 0]))
   blended = weight * previous + (1.0 - weight) * plan
   return jnp.where(both, blended, plan)
 
@@ -120,21 +106,6 @@ def hold_at_stop(state: SimulatorState, actions: Array, dt: float) -> Array:
   v = dynamics.states_from_trajectory(state.current_sim_trajectory)[:, 0, dynamics.V]
   accel = actions[:, 0]
   return actions.at[:, 0].set(jnp.where(v > -STOPPED_REVERSE_SPEED, jnp.maximum(accel, -v / dt), accel))
-
-
-def gate_start(state: SimulatorState, actions: Array, window: Array, metres: float, dt: float) -> Array:
-  """(O, 2) actions with the start gate (`PolicyConfig.start_gate`): an agent
-  moving forward slower than START_GATE_SPEED (or stopped) whose plan window
-  (O, H, 2) (its actions from now on) carries it less than `metres` (the
-  speed floored at 0, as stop_hold does) does not speed up, and comes to a
-  full stop below STOPPED_REVERSE_SPEED; faster or reversing agents keep
-  their action. The yaw rate is untouched."""
-  v = dynamics.states_from_trajectory(state.current_sim_trajectory)[:, 0, dynamics.V]
-  speeds = jnp.maximum(v[:, None] + jnp.cumsum(window[..., 0], axis=1) * dt, 0.0)     # (O, H)
-  slow = (v > -STOPPED_REVERSE_SPEED) & (v < START_GATE_SPEED)
-  gated = slow & (jnp.sum(speeds, axis=1) * dt < metres)
-  accel = jnp.where(v < STOPPED_REVERSE_SPEED, -v / dt, jnp.minimum(actions[:, 0], 0.0))
-  return actions.at[:, 0].set(jnp.where(gated, accel, actions[:, 0]))
 
 
 def limit_curvature(state: SimulatorState, actions: Array, max_curvature: float, dt: float) -> Array:

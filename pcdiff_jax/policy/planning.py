@@ -87,7 +87,7 @@ def sample(models: Models, scene: Encoded, cfg: Config, policy: PolicyConfig, rn
                           init_noise=init_noise)
   previous = latent.encode(warm.actions[feats.agent_index], models.stats)[None]   # (1, A, d)
   has = warm.has[feats.agent_index] & feats.agent_valid
-  centre = warm_centres(cond, previous, has, policy.warm_proposals)
+  centre = warm_centres(cond, previous, has)
   return planner.sample_cold_or_warm(
       models.denoiser, cond, cfg, rng, ~jnp.any(has), centre, policy.ddim_steps,
       policy.warm_ddim_steps, policy.warm_step, policy.eta, prior_init=policy.prior_init,
@@ -160,22 +160,11 @@ def advance_plan(plan: Array, executed: Array) -> Array:
   return jnp.where((idx < horizon)[None, :, None], shifted, 0.0)
 
 
-def warm_centres(cond: planner.Conditioning, previous: Array, has: Array, proposals: int) -> Array:
+def warm_centres(cond: planner.Conditioning, previous: Array, has: Array) -> Array:
   """(S, A, d) where each of the S samples of a warm replan starts (before
   noising): the previous plan's latent previous (1, A, d) where an agent has
-  one (has (A,)), else its prior centre; samples 1..`proposals` from its
-  most likely proposals instead (`PolicyConfig.warm_proposals`)."""
-  centre = jnp.broadcast_to(jnp.where(has[None, :, None], previous, cond.mu), cond.mu.shape)
-  if proposals == 0:
-    return centre
-  ranked = top_proposals(cond.proposals[0], cond.probs[0], proposals)           # (n, A, d)
-  return centre.at[1:1 + proposals].set(ranked)
-
-
-def top_proposals(proposals: Array, probs: Array, n: int) -> Array:
-  """(n, A, d) each agent's n most likely of its proposal latents (A, K, d), by probs (A, K)."""
-  order = jnp.argsort(-probs, axis=-1)[:, :n]                                   # (A, n)
-  return jnp.moveaxis(jnp.take_along_axis(proposals, order[..., None], axis=1), 1, 0)
+  one (has (A,)), else its prior centre (cond.mu (S, A, d))."""
+  return jnp.broadcast_to(jnp.where(has[None, :, None], previous, cond.mu), cond.mu.shape)
 
 
 def still_agents(cond: planner.Conditioning, stats: latent.LatentStats, cfg: Config, seconds: float,

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 
 from pcdiff_jax.config import Config
 from pcdiff_jax.model import guidance as guidance_lib
-from pcdiff_jax.model import joint_selection, latent, planner
+from pcdiff_jax.model import joint_selection, planner
 from pcdiff_jax.model.planner import Models
 from pcdiff_jax.policy.config import PolicyConfig
 from pcdiff_jax.sim.datatypes import Array, ObjectType
@@ -37,7 +37,6 @@ def select(y0: Array, models: Models, scene, cfg: Config, policy: PolicyConfig, 
     road_here = jax.tree_util.tree_map(lambda a: a[None], road_here)   # a batch of 1 for map_cost
   return select_sample(y0, models, scene.cond, scene.batched, cfg, policy.select_lookahead, keep,
                        road_here, policy.select_map_weight, policy.guidance, policy.select_stride,
-                       policy.select_proposal_weight, policy.select_proposal_scale,
                        policy.select_neighbours)
 
 
@@ -45,15 +44,12 @@ def select_sample(y0: Array, models: Models, cond: planner.Conditioning, batched
                   lookahead: int, keep: Array, road: Optional[RoadField] = None,
                   map_weight: float = 0.0,
                   guidance: guidance_lib.GuidanceConfig = guidance_lib.GuidanceConfig(),
-                  stride: int = 1, proposal_weight: float = 0.0, proposal_scale: float = 1.0,
-                  neighbours: int = 0) -> Array:
+                  stride: int = 1, neighbours: int = 0) -> Array:
   """(1, A, d): per agent, one of the S joint samples y0 (S, A, d) of one scene
   (cond, batched: that scene repeated S times) such that the chosen plans
   overlap least over their first `lookahead` steps, every `stride`-th (`PolicyConfig.select_samples`),
   plus map_weight x each sample's J_map on `road` (the scene's field in the
-  scene frame) when map_weight > 0, plus proposal_weight x its
-  `proposal_nll` (scale `proposal_scale` m) when proposal_weight > 0; agents
-  where keep (A,) keep sample 0. neighbours > 0: overlaps against each
+  scene frame) when map_weight > 0; agents where keep (A,) keep sample 0. neighbours > 0: overlaps against each
   agent's that many nearest agents only (`PolicyConfig.select_neighbours`)."""
   states = planner.decode_states(models.stats, cond, y0, cfg)[..., :lookahead:stride, :]   # (S, A, L, 4)
   xy, yaw = planner.to_scene(states, batched)
@@ -72,11 +68,6 @@ def select_sample(y0: Array, models: Models, cond: planner.Conditioning, batched
                                  vehicle=feats.agent_types == ObjectType.VEHICLE,
                                  pursuer=jnp.int32(-1), evader=jnp.int32(-1))
     unary = map_weight * guidance_lib.map_cost(xy, yaw, agents, road, guidance).T    # (A, S)
-  if proposal_weight > 0:
-    proposals = latent.rollout(jnp.moveaxis(cond.proposals[0], -2, 0), cond.speed[0], models.stats,
-                               cfg.kinematics)[..., :lookahead:stride, :2]          # (K, A, L, 2)
-    nll = proposal_nll(states[..., :2], proposals, cond.probs[0], proposal_scale)   # (S, A)
-    unary = unary + proposal_weight * (nll - jnp.min(nll, axis=0)).T
   # ICM starts from each agent's best unary sample (sample 0 on ties) and never moves a kept
   # agent: a zero unary keeps it on sample 0.
   unary = jnp.where(keep[:, None], 0.0, unary)
@@ -86,14 +77,3 @@ def select_sample(y0: Array, models: Models, cond: planner.Conditioning, batched
       unary, coll, feats.agent_valid & ~keep, float(stride), sweeps=2, order=jnp.arange(num), others=others)
   return jnp.take_along_axis(y0, choice[None, :, None], axis=0)
 
-
-def proposal_nll(paths: Array, proposals: Array, probs: Array, scale: float) -> Array:
-  """(S, A) -log sum_k p_k exp(-D_k / (2 scale^2)) of each sampled path
-  (S, A, L, 2) under the encoder's proposals (K, A, L, 2) and their
-  probabilities (A, K), D_k the mean squared distance to proposal k (agent
-  frame, m^2): how unlikely the encoder finds a plan. A parked car whose
-  encoder says 'stays' with p = 0.98 pays about 4 nats for a sample that
-  pulls away along a 2% proposal; between likely modes the cost hardly differs."""
-  dist = jnp.mean(jnp.sum(jnp.square(paths[:, None] - proposals[None]), -1), -1)   # (S, K, A)
-  logp = jnp.log(jnp.maximum(probs.T, 1e-9))[None]                                   # (1, K, A)
-  return -jax.nn.logsumexp(logp - dist / (2.0 * scale ** 2), axis=1)
