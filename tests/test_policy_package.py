@@ -63,14 +63,14 @@ def _outputs(models) -> dict[str, np.ndarray]:
 
 def machine() -> str:
   """What decides the CPU program's last bits: the jax and jaxlib versions and the CPU's vector units."""
-  import jaxlib
+  from importlib import metadata
   flags = set()
   if pathlib.Path("/proc/cpuinfo").exists():
     for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines():
       if line.startswith("flags"):
         flags = set(line.split(":", 1)[1].split()) & {"avx", "avx2", "fma", "avx512f", "avx512_bf16", "amx_tile"}
         break
-  return f"jax {jax.__version__} jaxlib {jaxlib.__version__} {platform.machine()} {' '.join(sorted(flags))}"
+  return f"jax {metadata.version('jax')} jaxlib {metadata.version('jaxlib')} {platform.machine()} {' '.join(sorted(flags))}"
 
 
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="the reference was recorded on CPU")
