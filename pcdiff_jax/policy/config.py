@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+
 from pcdiff_jax.config import Config
 from pcdiff_jax.model import guidance as guidance_lib
 
@@ -58,7 +59,6 @@ class PolicyConfig:
       measured ("Ablation: the real WOMD sample record").
 
   Options that were measured without gain are gone; CHANGELOG.md keeps their results.
-
   """
   ddim_steps: int = 5
   eta: float = 0.0
