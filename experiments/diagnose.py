@@ -147,9 +147,10 @@ def replay(args, models, cfg, batch, num) -> dict:
 
 def drift(args, models, cfg, batch, num) -> dict:
   del models
-  ecfg = evaluation.EvalConfig(method=args.method, checkpoint=args.checkpoint, replan_every=args.replan_every,
-                               ddim_steps=args.ddim_steps, consistent_noise=args.consistent_noise,
-                               execute=args.execute, warm_start=args.warm_start)
+  pcfg = policy.PolicyConfig(replan_every=args.replan_every, ddim_steps=args.ddim_steps,
+                             consistent_noise=args.consistent_noise, execute=args.execute,
+                             warm_start=args.warm_start)
+  ecfg = evaluation.EvalConfig(method=args.method, checkpoint=args.checkpoint, policy=pcfg)
   actor, params = evaluation.make_actor(ecfg)
   rngs = jax.random.split(jax.random.PRNGKey(args.seed), num)
   final = jax.device_get(evaluation.make_rollout_fn(actor, ecfg)(batch, rngs, params))

@@ -59,16 +59,16 @@ ROUND_POLICIES = ("v8", "defaults")
 def _round_policy(name: str = "v8"):
   """The policy a round rolls out, with one sample (no selection: the
   on-policy states should show the model's own drift, not the collision
-  filter's fixes). 'v8': what every round of v3-v8 rolled out (session 10's
-  defaults, no jerk limit), pinned so that later changes of the inference
-  defaults leave `make train` as it was. 'defaults': today's PolicyConfig."""
+  filter's fixes). 'v8': what every round of v3-v8 rolled out (the inference
+  defaults of that time, no jerk limit), pinned so that later changes of the
+  inference defaults leave `make train` as it was. 'defaults': today's PolicyConfig."""
   import dataclasses as dc
   from pcdiff_jax import policy
   if name == "defaults":
     return dc.replace(policy.PolicyConfig(), select_samples=1)
   return policy.PolicyConfig(select_samples=1, warm_step=30, warm_ddim_steps=2, select_stride=1,
-                             temporal_ensemble=(0.3, 0.0), jerk_limit=(0.0, 0.0), warm_proposals=0,
-                             stop_hold=False, still_gate=(0.0, 0.0), max_curvature=0.0)
+                             temporal_ensemble=(0.3, 0.0), jerk_limit=(0.0, 0.0), stop_hold=False,
+                             still_gate=(0.0, 0.0), max_curvature=0.0)
 
 
 def parse_args(argv=None) -> argparse.Namespace:

@@ -56,6 +56,7 @@ def main(argv=None) -> int:
   from pcdiff_jax import evaluation, viz
   from pcdiff_jax.data import womd
   from pcdiff_jax.model.guidance import GuidanceConfig
+  from pcdiff_jax.policy import PolicyConfig
   try:
     states, meta = next(iter(womd.iterate(args.scenarios, batch_size=args.num_scenes, with_meta=True)))
   except (FileNotFoundError, ValueError, StopIteration) as err:
@@ -66,8 +67,8 @@ def main(argv=None) -> int:
   base = GuidanceConfig(w_map=args.w_map, w_coll=args.w_coll, w_pursue=args.w_pursue, eta=args.eta)
   finals = {}
   for mode in MODES:
-    cfg = evaluation.EvalConfig(method="pcdiff", checkpoint=args.checkpoint, ddim_steps=args.ddim_steps,
-                                replan_every=args.replan_every,
+    cfg = evaluation.EvalConfig(method="pcdiff", checkpoint=args.checkpoint,
+                                policy=PolicyConfig(ddim_steps=args.ddim_steps, replan_every=args.replan_every),
                                 guidance=dataclasses.replace(base, mode=mode))
     try:
       actor, params = evaluation.make_actor(cfg)

@@ -30,6 +30,7 @@ from pcdiff_jax import evaluation, wosac
 from pcdiff_jax.config import MetricsConfig
 from pcdiff_jax.data import submission
 from pcdiff_jax.model.guidance import GuidanceConfig
+from pcdiff_jax.policy import PolicyConfig
 
 
 def _shard(text: str) -> tuple[int, int]:
@@ -127,7 +128,7 @@ def _metadata(args, cfg: wosac.WosacConfig) -> submission.Metadata:
   description = args.description
   if description is None:
     description = (f"pcdiff_jax {ev.method}: closed loop at 10 Hz" +
-                   (f", DDIM {ev.ddim_steps} steps, {ev.metrics.max_reactive_agents} agents + SDC per plan, "
+                   (f", DDIM {ev.policy.ddim_steps} steps, {ev.metrics.max_reactive_agents} agents + SDC per plan, "
                     "IDM beyond" if ev.method in evaluation.LEARNED else "") +
                    (", IDM ego" if cfg.ego == "idm" else ""))
     if ev.method == wosac.LOG_REPLAY:
@@ -192,8 +193,8 @@ def main(argv=None) -> int:
     if args.score is not None:
       return _score(args)
     guidance = GuidanceConfig(mode=args.guidance)
-    ev = evaluation.EvalConfig(method=args.method, checkpoint=args.checkpoint, ddim_steps=args.ddim_steps,
-                               replan_every=args.replan_every, warm_start=args.warm_start, seed=args.seed,
+    pcfg = PolicyConfig(ddim_steps=args.ddim_steps, replan_every=args.replan_every, warm_start=args.warm_start)
+    ev = evaluation.EvalConfig(method=args.method, checkpoint=args.checkpoint, policy=pcfg, seed=args.seed,
                                metrics=MetricsConfig(max_reactive_agents=args.max_agents), guidance=guidance)
     cfg = wosac.WosacConfig(eval=ev, ego=args.ego, num_rollouts=args.num_rollouts,
                             rollouts_per_call=args.rollouts_per_call, max_objects=args.max_objects)

@@ -26,6 +26,7 @@ from pcdiff_jax.config import MetricsConfig
 from pcdiff_jax.data import womd
 from pcdiff_jax.model import guidance as guidance_lib
 from pcdiff_jax.model.guidance import GuidanceConfig
+from pcdiff_jax.policy.config import PolicyConfig
 from pcdiff_jax.sim import env
 from pcdiff_jax.sim.actors import Actor, combine
 
@@ -48,31 +49,15 @@ LEARNED = ("pcdiff", "pcdiff-noprior", "simpl-ar")
 @dataclasses.dataclass(frozen=True)
 class EvalConfig:
   """method: a baseline of METHODS or a learned policy of LEARNED (which needs
-  `checkpoint`, the training workdir). ddim_steps / eta / replan_every: the
-  learned policy's sampler and replanning interval. ego: the SDC's fixed
-  policy, "log" (replay) or "idm". guidance: test-time guidance of the
-  learned diffusion policies (`model.guidance`). score_adversary: also score
-  the ego against the most threatening agent (the pursuer adversarial
-  guidance would pick) when the run is not adversarial, for comparison.
-  max_scenarios: the first N scenarios of the files only. warm_start,
-  warm_step, warm_ddim_steps: amortised replanning of the diffusion policies,
-  temporal_ensemble: their executed plan averaged over replans
-  (`policy.PolicyConfig`). select_samples: the diffusion policies draw that
-  many joint plans per replan and keep, per agent, the one that collides
-  least (`PolicyConfig.select_samples`), select_map_weight: and that leaves
-  the road least (`PolicyConfig.select_map_weight`), scored at every
-  select_stride-th step (`PolicyConfig.select_stride`) against each agent's
-  select_neighbours nearest (`PolicyConfig.select_neighbours`), select_proposal_weight /
-  select_proposal_scale: and that the encoder's proposals make likeliest
-  (`PolicyConfig.select_proposal_weight`); jerk_limit: their
-  executed acceleration's rate limit (`PolicyConfig.jerk_limit`); warm_proposals:
-  their warm samples that start from proposals (`PolicyConfig.warm_proposals`);
-  ensemble_brake_weight / ensemble_brake_margin / ensemble_pass: the ensemble's
-  weight where a new plan brakes harder (or differs more: "both";
-  `PolicyConfig.ensemble_brake_weight`); stop_hold: their braking ends at
-  standstill instead of reversing (`PolicyConfig.stop_hold`).
-  simpl_ar_sample: SIMPL-AR draws its modes by their probabilities instead of
-  taking the top mode.
+  `checkpoint`, the training workdir). policy: the diffusion policies'
+  settings (`policy.PolicyConfig`; its prior_init and guidance are set from
+  `method` and `guidance`). ego: the SDC's fixed policy, "log" (replay) or
+  "idm". guidance: test-time guidance of the learned diffusion policies
+  (`model.guidance`). score_adversary: also score the ego against the most
+  threatening agent (the pursuer adversarial guidance would pick) when the
+  run is not adversarial, for comparison. max_scenarios: the first N
+  scenarios of the files only. simpl_ar_sample: SIMPL-AR draws its modes by
+  their probabilities instead of taking the top mode.
 
   The learned methods model up to `metrics.max_reactive_agents` + 1 agents
   (the SDC and every evaluated agent), whatever cap they were trained with,
@@ -82,12 +67,7 @@ class EvalConfig:
   method: str = "cv"
   checkpoint: Optional[str] = None
   ego: str = "log"
-  ddim_steps: int = 5
-  eta: float = 0.0
-  replan_every: int = 1
-  consistent_noise: bool = False
-  execute: str = "actions"
-  prior_centre: str = "mean"
+  policy: PolicyConfig = PolicyConfig()
   num_rollouts: int = 1
   seeds: int = 1
   num_steps: int = 80
@@ -99,25 +79,12 @@ class EvalConfig:
   guidance: GuidanceConfig = GuidanceConfig()
   score_adversary: bool = False
   max_scenarios: Optional[int] = None
-  warm_start: bool = True
-  warm_step: int = 90
-  warm_ddim_steps: int = 1
-  temporal_ensemble: tuple[float, float] = (0.7, 0.0)
   simpl_ar_sample: bool = False
-  select_samples: int = 8
-  select_map_weight: float = 30.0
-  select_stride: int = 3
-  select_neighbours: int = 16
-  select_proposal_weight: float = 0.0
-  select_proposal_scale: float = 1.0
-  jerk_limit: tuple[float, float] = (1.5, 5.0)
-  warm_proposals: int = 0
-  ensemble_brake_weight: Optional[float] = None
-  ensemble_brake_margin: float = 0.0
-  ensemble_pass: str = "brake"
-  stop_hold: bool = True
-  start_gate: tuple[float, float] = (0.0, 0.0)
-  policy_overrides: tuple[tuple[str, Any], ...] = ()
+
+  @property
+  def replan_every(self) -> int:
+    """Steps between decisions: the diffusion policies' replanning interval, else 1."""
+    return self.policy.replan_every if self.method in ("pcdiff", "pcdiff-noprior") else 1
 
   @property
   def adversarial_scores(self) -> bool:
@@ -159,24 +126,7 @@ def _method_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
     return simpl_ar.simpl_ar(with_agent_cap(model_cfg, cfg.metrics), ar), enc
   use_prior = cfg.method == "pcdiff"
   models, model_cfg = diffusion_stage.load(cfg.checkpoint, use_prior=use_prior)
-  pcfg = policy.PolicyConfig(ddim_steps=cfg.ddim_steps, eta=cfg.eta, prior_init=use_prior,
-                             replan_every=cfg.replan_every, guidance=cfg.guidance,
-                             consistent_noise=cfg.consistent_noise, execute=cfg.execute,
-                             prior_centre=cfg.prior_centre, warm_start=cfg.warm_start,
-                             warm_step=cfg.warm_step, warm_ddim_steps=cfg.warm_ddim_steps,
-                             temporal_ensemble=cfg.temporal_ensemble,
-                             select_samples=cfg.select_samples,
-                             select_map_weight=cfg.select_map_weight,
-                             select_stride=cfg.select_stride, jerk_limit=cfg.jerk_limit,
-                             select_neighbours=cfg.select_neighbours,
-                             select_proposal_weight=cfg.select_proposal_weight,
-                             select_proposal_scale=cfg.select_proposal_scale,
-                             warm_proposals=cfg.warm_proposals,
-                             ensemble_brake_weight=cfg.ensemble_brake_weight,
-                             ensemble_brake_margin=cfg.ensemble_brake_margin,
-                             ensemble_pass=cfg.ensemble_pass, stop_hold=cfg.stop_hold,
-                             start_gate=cfg.start_gate)
-  pcfg = policy.with_overrides(pcfg, cfg.policy_overrides)
+  pcfg = dataclasses.replace(cfg.policy, prior_init=use_prior, guidance=cfg.guidance)
   return policy.actor(with_agent_cap(model_cfg, cfg.metrics), pcfg), models
 
 
@@ -321,7 +271,7 @@ def evaluate(scenarios: Sequence[str] | str, out_dir: str, cfg: EvalConfig,
   step_ms: list[float] = []   # per replanning step of one call (all its scenarios)
   # The diffusion policies plan every `replan_every` steps and only execute in
   # between; the other methods decide at every step.
-  every = cfg.replan_every if cfg.method in ("pcdiff", "pcdiff-noprior") else 1
+  every = cfg.replan_every
   num_replans = -(-cfg.num_steps // every)
   gifs_done, num_done, calls = 0, 0, 0
   from tqdm.auto import tqdm

@@ -41,25 +41,48 @@ def test_rollout_cli_bad_arguments(tmp_path, capsys):
     rollout.main(["--scenarios", "x", "--out", str(tmp_path), "--num-steps", "0"])
   assert "--num-steps must be >= 1" in capsys.readouterr().err
   with pytest.raises(SystemExit) as err:   # past the selection's lookahead: a usage error, not a traceback
-    rollout.main(["--scenarios", "x", "--out", str(tmp_path), "--select-stride", "31"])
-  assert err.value.code == 2 and "--select-stride must be <= 30" in capsys.readouterr().err
-  with pytest.raises(SystemExit) as err:
-    rollout.main(["--scenarios", "x", "--out", str(tmp_path), "--jerk-limit", "-1", "0"])
-  assert err.value.code == 2 and "--jerk-limit" in capsys.readouterr().err
-  with pytest.raises(SystemExit) as err:
-    rollout.main(["--scenarios", "x", "--out", str(tmp_path), "--select-samples", "2", "--warm-proposals", "2"])
-  assert err.value.code == 2 and "--warm-proposals must be in [0, --select-samples - 1]" in capsys.readouterr().err
-  with pytest.raises(SystemExit) as err:
-    rollout.main(["--scenarios", "x", "--out", str(tmp_path), "--start-gate", "2", "-1"])
-  assert err.value.code == 2 and "--start-gate takes SECONDS METRES >= 0" in capsys.readouterr().err
-  for flag, value, message in (("--select-neighbours", "-1", "must be >= 0 (0: every pair)"),
-                               ("--select-proposal-weight", "-1", "must be >= 0"),
-                               ("--select-proposal-scale", "0", "must be > 0 (m)")):
+    rollout.main(["--scenarios", "x", "--out", str(tmp_path), "--policy", "select_stride=31"])
+  assert err.value.code == 2 and "select_stride must be in [1, select_lookahead]" in capsys.readouterr().err
+  for item, message in (("jerk_limit=-1,0", "jerk_limit must be two limits >= 0"),
+                        ("select_neighbours=-1", "select_neighbours must be >= 0 (0: every pair)"),
+                        ("speed=1", "unknown policy field 'speed'")):
     with pytest.raises(SystemExit) as err:
-      rollout.main(["--scenarios", "x", "--out", str(tmp_path), flag, value])
-    assert err.value.code == 2 and f"{flag} {message}" in capsys.readouterr().err
+      rollout.main(["--scenarios", "x", "--out", str(tmp_path), "--policy", item])
+    assert err.value.code == 2 and message in capsys.readouterr().err
+  with pytest.raises(SystemExit) as err:   # a flag removed for --policy FIELD=VALUE
+    rollout.main(["--scenarios", "x", "--out", str(tmp_path), "--select-samples", "4"])
+  assert err.value.code == 2
   assert rollout.main(["--scenarios", str(tmp_path / "missing.tfrecord"), "--out", str(tmp_path / "o")]) == 2
   assert "missing.tfrecord" in capsys.readouterr().err
+
+
+def test_rollout_cli_policy_file(tmp_path, capsys):
+  """--policy-file: a JSON object of PolicyConfig fields, under --ddim-steps and --policy; an unknown
+  field is a usage error naming the field and the file."""
+  good = tmp_path / "policy.json"
+  good.write_text('{"select_samples": 4, "jerk_limit": [1, 3], "ddim_steps": 10, "stop_hold": false}')
+  args = rollout.parse_args(["--scenarios", "x", "--out", str(tmp_path / "o"), "--policy-file", str(good),
+                             "--ddim-steps", "7", "--policy", "select_samples=2"])
+  pcfg = args.policy_config
+  assert (pcfg.select_samples, pcfg.jerk_limit, pcfg.ddim_steps, pcfg.stop_hold) == (2, (1.0, 3.0), 7, False)
+  bad = tmp_path / "bad.json"
+  bad.write_text('{"select_samples": 4, "start_gate": [2, 2]}')
+  with pytest.raises(SystemExit) as err:
+    rollout.parse_args(["--scenarios", "x", "--out", str(tmp_path / "o"), "--policy-file", str(bad)])
+  message = capsys.readouterr().err
+  assert err.value.code == 2 and str(bad) in message and "unknown policy field 'start_gate'" in message
+  with pytest.raises(SystemExit) as err:
+    rollout.parse_args(["--scenarios", "x", "--out", str(tmp_path / "o"), "--policy-file", str(tmp_path / "none.json")])
+  assert err.value.code == 2 and "none.json" in capsys.readouterr().err
+
+
+def test_rollout_help_is_short_and_lists_the_policy_fields(capsys):
+  with pytest.raises(SystemExit):
+    rollout.parse_args(["--help"])
+  text = capsys.readouterr().out
+  assert "select_samples=8" in text and "still_gate=0.0,0.0" in text and "--select-samples" not in text
+  options = [line for line in text.splitlines() if line.startswith("  -")]
+  assert len(options) <= 36, options   # 52 with one flag per policy field
 
 
 CLIS = ("bench", "demo", "diagnose", "export", "family_table", "finetune", "guidance_figure", "latent_report",

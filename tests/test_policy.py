@@ -157,11 +157,11 @@ def test_track_execution_follows_the_planned_path(models):
   t = (jnp.arange(CFG.encoder.horizon) + 1.0) * 0.1
   ahead = cur.xy[:, 0][:, None] + cur.vel_xy[:, 0][:, None] * t[None, :, None]       # keep going
   valid = np.asarray(cur.valid[:, 0])
-  np.testing.assert_allclose(np.asarray(policy._track(state, ahead, 0, 5, CFG))[valid], 0.0, atol=1e-3)
+  np.testing.assert_allclose(np.asarray(policy.execution._track(state, ahead, 0, 5, CFG))[valid], 0.0, atol=1e-3)
   left = geometry.unit(cur.yaw[:, 0] + np.pi / 2)
   bend = ahead + 0.5 * t[None, :, None] ** 2 * left[:, None]                         # drifting left
   moving = valid & (np.linalg.norm(np.asarray(cur.vel_xy[:, 0]), axis=-1) > 1.0)
-  assert (np.asarray(policy._track(state, bend, 0, 5, CFG))[moving, 1] > 0).all()
+  assert (np.asarray(policy.execution._track(state, bend, 0, 5, CFG))[moving, 1] > 0).all()
   act = policy.actor(CFG, policy.PolicyConfig(select_samples=1, ddim_steps=1, replan_every=2, execute="track"))
   ps = act.init(jax.random.key(0), state)
   for k in range(3):
@@ -237,25 +237,6 @@ def test_temporal_ensemble_averages_the_plans_made_for_each_step(models):
   np.testing.assert_allclose(out[0, :3], [[0.75, 0.25]] * 3)     # the steps both plans cover, per channel
   np.testing.assert_array_equal(out[0, 3:], 0.0)                 # past the previous plan's end
   np.testing.assert_array_equal(out[1:], 0.0)                    # no new plan / no previous plan
-  # ensemble_brake_weight: where the new plan brakes harder its own weight holds (acceleration only).
-  new_b = jnp.zeros((3, 5, 2)).at[0, :, 0].set(jnp.array([2.0, 2.0, 0.0, 0.0, 0.0]))
-  ens = jax.jit(policy.ensemble_plans, static_argnums=6)
-  out = np.asarray(ens(previous, had, jnp.int32(2), new_b, jnp.array([True, False, True]),
-                       jnp.array([0.75, 0.25]), 0.1))
-  np.testing.assert_allclose(out[0, :3, 0], [0.75 + 0.25 * 2.0, 0.75 + 0.25 * 2.0, 0.1])
-  np.testing.assert_allclose(out[0, :3, 1], 0.25)
-  ens_m = jax.jit(policy.ensemble_plans, static_argnums=(6, 7))        # braking by less than the margin is averaged
-  out = np.asarray(ens_m(previous, had, jnp.int32(2), new_b, jnp.array([True, False, True]),
-                         jnp.array([0.75, 0.25]), 0.1, 1.5))
-  np.testing.assert_allclose(out[0, :3, 0], [0.75 + 0.25 * 2.0, 0.75 + 0.25 * 2.0, 0.75])
-  ens_b = jax.jit(policy.ensemble_plans, static_argnums=(6, 7, 8))      # "both": a big rise passes too
-  out = np.asarray(ens_b(previous, had, jnp.int32(2), new_b, jnp.array([True, False, True]),
-                         jnp.array([0.75, 0.25]), 0.1, 0.5, True))
-  np.testing.assert_allclose(out[0, :3, 0], [0.1 + 0.9 * 2.0, 0.1 + 0.9 * 2.0, 0.1])
-  with pytest.raises(ValueError, match="ensemble_pass"):
-    policy.actor(CFG, policy.PolicyConfig(ensemble_pass="up"))
-  with pytest.raises(ValueError, match="ensemble_brake_weight"):
-    policy.actor(CFG, policy.PolicyConfig(ensemble_brake_weight=1.0))
   # In closed loop: the executed action is the ensemble's, replanning every step.
   state = env.reset(make_scene(num_steps=91))
   pcfg = policy.PolicyConfig(select_samples=1, ddim_steps=2, temporal_ensemble=(0.5, 0.5), jerk_limit=(0.0, 0.0),
@@ -324,57 +305,6 @@ def test_braking_stops_at_standstill_instead_of_reversing(models):
   assert select._cache_size() == 1
 
 
-def test_start_gate_lets_a_stopped_agent_go_only_on_a_committed_plan(models):
-  """start_gate: slow agents whose plan carries them less than `metres` within the window do not
-  speed up (a full stop below STOPPED_REVERSE_SPEED); a plan that commits to going, a faster agent
-  and a reversing one keep their action; in closed loop a gate no plan passes keeps stopped agents
-  exactly where they are."""
-  from pcdiff_jax.sim import dynamics
-  state = env.reset(make_scene(num_objects=4, num_steps=91, speeds=(0.0, 0.3, 0.0, -2.0)))
-  dt = CFG.kinematics.dt
-  now = jnp.array([[0.2, 0.1], [0.1, 0.0], [2.0, 0.0], [-1.0, 0.0]])
-  window = jnp.repeat(now[:, None], 20, axis=1)                  # (O, 2 s, 2): the same action throughout
-  # Over 2 s: 0.42 m, 0.81 m, 4.2 m (0 m reversing, the speed floored at 0) against 1 m.
-  gated = np.asarray(jax.jit(lambda s, a, w: policy.gate_start(s, a, w, 1.0, dt))(state, now, window))
-  np.testing.assert_allclose(gated[:, 0], [0.0, 0.0, 2.0, -1.0], atol=1e-6)
-  np.testing.assert_array_equal(gated[:, 1], np.asarray(now)[:, 1])
-  fast = env.reset(make_scene(num_objects=4, num_steps=91, speeds=(10.0, 0.6, 0.0, 0.05)))
-  slow = np.asarray(policy.gate_start(fast, now, window, 1.0, dt))
-  np.testing.assert_allclose(slow[:, 0], [0.2, 0.1, 2.0, -0.5], atol=1e-6)   # 0.05 m/s: a full stop
-  act = policy.actor(CFG, policy.PolicyConfig(ddim_steps=2, select_samples=1, start_gate=(2.0, 1e3)))
-  select = jax.jit(act.select_action)
-  state = env.reset(make_scene(num_steps=91, speeds=(10.0, 0.0, 0.0, 0.0)))
-  start = np.asarray(state.current_sim_trajectory.xy)[1:, 0]
-  ps = act.init(jax.random.key(0), state)
-  for k in range(4):
-    out = select(models, state, ps, jax.random.key(k))
-    ps = out.actor_state
-    state = env.step(state, out.action, out.is_controlled)
-  np.testing.assert_allclose(np.asarray(state.current_sim_trajectory.xy)[1:, 0], start, atol=1e-5)
-  speed = np.asarray(dynamics.states_from_trajectory(state.current_sim_trajectory))[1:, 0, dynamics.V]
-  np.testing.assert_allclose(speed, 0.0, atol=1e-6)
-  assert select._cache_size() == 1
-  with pytest.raises(ValueError, match="start_gate"):
-    policy.actor(CFG, policy.PolicyConfig(start_gate=(2.0, -1.0)))
-
-
-def test_proposal_likelihood_prefers_what_the_encoder_finds_likely():
-  t = jnp.arange(1, 11, dtype=jnp.float32)[:, None] * jnp.array([1.0, 0.0])     # (L, 2): 1 m per step ahead
-  stay, go = jnp.zeros((10, 2)), t
-  proposals = jnp.stack([stay, go])[:, None]                                    # (K=2, A=1, L, 2)
-  paths = jnp.stack([stay, go])[:, None]                                        # (S=2, A=1, L, 2)
-  parked = np.asarray(policy.proposal_nll(paths, proposals, jnp.array([[0.98, 0.02]]), 1.0))[:, 0]
-  np.testing.assert_allclose(parked, [-np.log(0.98), -np.log(0.02)], atol=1e-3)   # D = 38.5 m^2: no overlap
-  even = np.asarray(policy.proposal_nll(paths, proposals, jnp.array([[0.5, 0.5]]), 1.0))[:, 0]
-  np.testing.assert_allclose(even[0], even[1], atol=1e-6)                       # likely modes cost alike
-  # A wider scale blurs the modes: the unlikely one costs less.
-  assert float(policy.proposal_nll(paths, proposals, jnp.array([[0.98, 0.02]]), 20.0)[1, 0]) < parked[1]
-  with pytest.raises(ValueError, match="select_proposal_weight"):
-    policy.actor(CFG, policy.PolicyConfig(select_proposal_weight=-1.0))
-  with pytest.raises(ValueError, match="select_proposal_scale"):
-    policy.actor(CFG, policy.PolicyConfig(select_proposal_scale=0.0))
-
-
 def test_sample_selection_keeps_the_least_colliding_joint_plan(models):
   from pcdiff_jax.model import features as features_lib
   from pcdiff_jax.model import guidance as guidance_lib
@@ -432,19 +362,6 @@ def test_sample_selection_keeps_the_least_colliding_joint_plan(models):
   clear = np.asarray(feats.agent_valid & ~keep) & (ranked[:, 1] - ranked[:, 0] > 0.1)
   assert clear.sum() >= 1
   np.testing.assert_array_equal(choice[clear], np.argmin(cost, -1)[clear])
-  # With a proposal term (select_proposal_weight) that dwarfs the rest, each agent keeps its
-  # sample the encoder's proposals make likeliest.
-  likely = jax.jit(lambda: policy.select_sample(y0, models, cond, batched, CFG, 30, keep,
-                                                proposal_weight=1e6, proposal_scale=2.0))()
-  choice = np.asarray(jnp.argmax(jnp.all(likely == y0, -1), 0))
-  paths = planner.decode_states(models.stats, cond, y0, CFG)[..., :30, :2]
-  proposals = jax.vmap(lambda p: planner.decode_states(models.stats, jax.tree_util.tree_map(
-      lambda a: a[:1], cond), p[None], CFG)[0], in_axes=1)(cond.proposals[0])[..., :30, :2]   # (K, A, L, 2)
-  nll = np.asarray(policy.proposal_nll(paths, proposals, cond.probs[0], 2.0))            # (S, A)
-  ranked = np.sort(nll, 0)
-  clear = np.asarray(feats.agent_valid & ~keep) & (ranked[1] - ranked[0] > 1e-3)
-  assert clear.sum() >= 1 and choice[0] == 0
-  np.testing.assert_array_equal(choice[clear], np.argmin(nll, 0)[clear])
   # In closed loop (with consistent noise: each sample's its own draw): one program, finite actions.
   act = policy.actor(CFG, policy.PolicyConfig(ddim_steps=2, select_samples=s, consistent_noise=True, guidance=g))
   select = jax.jit(act.select_action)
@@ -461,36 +378,6 @@ def test_sample_selection_keeps_the_least_colliding_joint_plan(models):
     policy.actor(CFG, policy.PolicyConfig(select_stride=31))
   with pytest.raises(ValueError, match="select_neighbours"):
     policy.actor(CFG, policy.PolicyConfig(select_neighbours=-1))
-
-
-def test_warm_proposals_start_samples_from_the_most_likely_proposals(models):
-  a, k, d = 3, 4, 2
-  proposals = jnp.arange(a * k * d, dtype=jnp.float32).reshape(1, a, k, d)
-  probs = jnp.array([[[0.1, 0.6, 0.2, 0.1], [0.4, 0.1, 0.2, 0.3], [0.25, 0.25, 0.3, 0.2]]])
-  s = 4
-  cond = planner.Conditioning(inputs=None, mu=jnp.full((s, a, d), -1.0), sigma=jnp.ones((s, a, d)),
-                              speed=jnp.zeros((s, a)), proposals=jnp.repeat(proposals, s, 0),
-                              probs=jnp.repeat(probs, s, 0))
-  previous = jnp.full((1, a, d), 7.0)
-  has = jnp.array([True, True, False])
-  out = np.asarray(policy.warm_centres(cond, previous, has, 2))
-  assert out.shape == (s, a, d)
-  np.testing.assert_array_equal(out[[0, 3], :2], 7.0)             # samples 0 and 3 continue the plan
-  np.testing.assert_array_equal(out[[0, 3], 2], -1.0)             # or start at the prior centre
-  props = np.asarray(proposals[0])
-  np.testing.assert_array_equal(out[1], props[[0, 1, 2], [1, 0, 2]])   # each agent's most likely
-  np.testing.assert_array_equal(out[2], props[[0, 1, 2], [2, 3, 0]])   # and its second (first on ties)
-  np.testing.assert_array_equal(np.asarray(policy.warm_centres(cond, previous, has, 0))[1:], out[[0, 0, 0]])
-  # In closed loop: one program, finite plans; more alternatives than samples is refused.
-  state = env.reset(make_scene(num_steps=91))
-  pcfg = policy.PolicyConfig(select_samples=3, ddim_steps=1, warm_proposals=2, select_map_weight=0.0)
-  act = policy.actor(CFG, pcfg)
-  select = jax.jit(act.select_action)
-  first = select(models, state, act.init(jax.random.key(0), state), jax.random.key(1))
-  second = select(models, env.step(state, first.action, first.is_controlled), first.actor_state, jax.random.key(2))
-  assert select._cache_size() == 1 and bool(jnp.all(jnp.isfinite(second.action.data)))
-  with pytest.raises(ValueError, match="warm_proposals"):
-    policy.actor(CFG, policy.PolicyConfig(select_samples=3, warm_proposals=3))
 
 
 def test_wheeled_objects_turn_only_by_moving():
@@ -514,11 +401,10 @@ def test_wheeled_objects_turn_only_by_moving():
 def test_policy_fields_are_set_by_name_with_their_types():
   """with_overrides (`experiments.rollout --policy FIELD=VALUE`) converts strings to each field's
   type, tuples element-wise, and names the fields when one is unknown."""
-  cfg = policy.with_overrides(policy.PolicyConfig(), [("max_curvature", "0.3"), ("start_gate", ("2", "1.5")),
-                                                       ("stop_hold", "false"), ("select_samples", "4"),
-                                                       ("ensemble_brake_weight", "0.3")])
-  assert cfg.max_curvature == 0.3 and cfg.start_gate == (2.0, 1.5) and cfg.stop_hold is False
-  assert cfg.select_samples == 4 and cfg.ensemble_brake_weight == 0.3
+  cfg = policy.with_overrides(policy.PolicyConfig(), [("max_curvature", "0.3"), ("still_gate", ("2", "1.5")),
+                                                       ("stop_hold", "false"), ("select_samples", "4")])
+  assert cfg.max_curvature == 0.3 and cfg.still_gate == (2.0, 1.5) and cfg.stop_hold is False
+  assert cfg.select_samples == 4
   with pytest.raises(ValueError, match="unknown policy field 'speed'.*max_curvature"):
     policy.with_overrides(policy.PolicyConfig(), [("speed", "1")])
 

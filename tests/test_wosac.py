@@ -305,7 +305,7 @@ def test_the_fallback_is_left_out_only_where_it_drives_nobody(tiny_models):
   from pcdiff_jax.config import get_config
   cfg = get_config("tiny")
   state = make_scene(num_steps=91)
-  ev = evaluation.EvalConfig(method="pcdiff", ddim_steps=2, num_steps=80, init_steps=11)
+  ev = evaluation.EvalConfig(method="pcdiff", policy=policy.PolicyConfig(ddim_steps=2), num_steps=80, init_steps=11)
   rngs = jax.random.split(jax.random.PRNGKey(3), 2)
   tiled = jax.tree_util.tree_map(lambda a: np.repeat(np.asarray(a)[None], 2, 0), state)
   for max_agents, expect_fallback in ((4, False), (2, True)):

@@ -1,0 +1,145 @@
+"""PolicyConfig: the closed-loop policy's settings, their ranges and overrides from the command line."""
+from __future__ import annotations
+
+import dataclasses
+
+from pcdiff_jax.config import Config
+from pcdiff_jax.model import guidance as guidance_lib
+
+
+@dataclasses.dataclass(frozen=True)
+class PolicyConfig:
+  """How the policy plans, picks and executes. The defaults are the shipped policy of
+  docs/RESULTS.md, "Table I: closed-loop realism and safety (synthetic val200 and test100)";
+  CHANGELOG.md says how each default was reached.
+
+  Sampling (docs/RESULTS.md, "Table II: DDIM steps and warm starts"):
+    ddim_steps, eta: DDIM steps and stochasticity of a cold plan (the first of a rollout).
+    prior_init: start DDIM at the proposal prior; False is the context-only model's N(0, I)
+      ("Ablation: the proposal prior").
+    prior_centre: "mean" centres the prior on the mean of an agent's K proposal latents, "top1"
+      on its most likely one.
+    consistent_noise: draw each object's initial noise once per rollout and reuse it at every
+      cold replan, so consecutive plans stay on one mode (smoother, but committed to it).
+    guidance: test-time guidance of every plan (`model.guidance`; "Table III: adversarial
+      guidance", "Ablation: objective guidance's collision weight").
+
+  Replanning:
+    replan_every: simulator steps between plans (1: 10 Hz).
+    warm_start: a replan starts from the previous plan, advanced by the executed steps, instead
+      of the prior: better realism and minADE at a fifth less time than cold plans (Table II).
+    warm_step, warm_ddim_steps: the previous plan is noised to diffusion step warm_step (90: it
+      keeps weight sqrt(abar_90) = 0.36, so most of the plan is re-drawn from the current scene)
+      and denoised in warm_ddim_steps steps.
+    temporal_ensemble: (m_accel, m_yaw_rate): the executed plan is m x the previous plans +
+      (1 - m) x the new one per action channel (ACT's temporal ensembling), which averages away
+      the sampling noise between consecutive plans; 0 turns a channel off.
+
+  Sample selection ("Ablation: samples per replan"):
+    select_samples: S joint samples per replan; each agent keeps the one that overlaps least
+      with the others' chosen samples (iterated conditional modes, `model.joint_selection`).
+    select_lookahead, select_stride: overlaps are scored over the first select_lookahead
+      steps, at every select_stride-th step.
+    select_neighbours: overlaps against each agent's N nearest agents only (0: every pair);
+      the choice equals the dense one where the (N+1)-th agent cannot reach the samples.
+    select_map_weight: weight of each sample's J_map (`guidance.map_cost`, m^2) beside its
+      overlaps, so an agent also prefers a sample that stays on the road; 0 turns it off.
+
+  Execution (filters on the executed action, `policy.execution`):
+    execute: "actions" executes the plan's actions open loop; "track" steers towards the plan's
+      point track_steps ahead (pure pursuit, as SIMPL-AR executes its proposals).
+    jerk_limit: (rise, fall) m/s^3: the executed acceleration moves from the last executed one
+      by at most rise * dt up and fall * dt down; 0 turns a side off.
+    stop_hold: braking ends at standstill, so a stopped car never reverses on plan noise.
+    still_gate: (seconds, metres): an agent slower than START_GATE_SPEED whose proposals,
+      weighted by probability, carry it less than `metres` within `seconds` is stopped and held
+      (parked cars stay parked; a car queued at a green light is let go); (0, 0) is off.
+    max_curvature: 1/m: a vehicle or cyclist turns at most this much per metre travelled, so
+      a parked car does not spin in place; 0 is off. Both chosen on the real val scenes
+      (docs/RESULTS.md, "Table I (real WOMD val)" and "Ablation: fine-tuning on real scenes,
+      and the still gate").
+
+  Options that were measured without gain are gone; CHANGELOG.md keeps their results.
+  """
+  ddim_steps: int = 5
+  eta: float = 0.0
+  prior_init: bool = True
+  replan_every: int = 1
+  guidance: guidance_lib.GuidanceConfig = guidance_lib.GuidanceConfig()
+  consistent_noise: bool = False
+  execute: str = "actions"
+  track_steps: int = 5
+  prior_centre: str = "mean"
+  warm_start: bool = True
+  warm_step: int = 90
+  warm_ddim_steps: int = 1
+  temporal_ensemble: tuple[float, float] = (0.7, 0.0)
+  select_samples: int = 8
+  select_lookahead: int = 30
+  select_map_weight: float = 30.0
+  select_stride: int = 3
+  select_neighbours: int = 16
+  jerk_limit: tuple[float, float] = (1.5, 5.0)
+  stop_hold: bool = True
+  max_curvature: float = 0.3
+  still_gate: tuple[float, float] = (2.0, 1.0)
+
+
+EXECUTE = ("actions", "track")
+
+
+def with_overrides(policy: PolicyConfig, overrides) -> PolicyConfig:
+  """`policy` with fields replaced by (name, value) pairs, each value converted
+  to the field's type (tuples element-wise); an unknown name is a ValueError
+  that lists the fields."""
+  fields = {f.name: f for f in dataclasses.fields(PolicyConfig)}
+  changes = {}
+  for name, value in overrides:
+    if name not in fields or name == "guidance":
+      raise ValueError(f"unknown policy field {name!r}; choose from {sorted(set(fields) - {'guidance'})}")
+    default = getattr(PolicyConfig(), name)
+    if isinstance(default, tuple):
+      value = tuple(type(d)(v) for d, v in zip(default, value))
+    elif isinstance(default, bool):
+      value = value if isinstance(value, bool) else str(value).lower() in ("1", "true", "yes", "on")
+    else:
+      value = type(default)(value)
+    changes[name] = value
+  return dataclasses.replace(policy, **changes)
+
+
+def validate(cfg: Config, policy: PolicyConfig) -> None:
+  """Raises ValueError naming the first PolicyConfig field out of range."""
+  if policy.replan_every < 1 or policy.replan_every > cfg.encoder.horizon:
+    raise ValueError(f"replan_every must be in [1, {cfg.encoder.horizon}], got {policy.replan_every}")
+  if policy.prior_centre not in ("mean", "top1"):
+    raise ValueError(f"prior_centre must be 'mean' or 'top1', got {policy.prior_centre!r}")
+  if policy.execute not in EXECUTE:
+    raise ValueError(f"execute must be one of {EXECUTE}, got {policy.execute!r}")
+  if not 2 <= policy.track_steps <= cfg.encoder.horizon:
+    raise ValueError(f"track_steps must be in [2, {cfg.encoder.horizon}], got {policy.track_steps}")
+  if not 0 <= policy.warm_step < cfg.diffusion.num_steps:
+    raise ValueError(f"warm_step must be in [0, {cfg.diffusion.num_steps - 1}], got {policy.warm_step}")
+  if len(policy.temporal_ensemble) != 2 or not all(0.0 <= m < 1.0 for m in policy.temporal_ensemble):
+    raise ValueError(f"temporal_ensemble must be two weights in [0, 1) (acceleration, yaw rate), "
+                     f"got {policy.temporal_ensemble}")
+  if not 1 <= policy.warm_ddim_steps <= policy.warm_step + 1:
+    raise ValueError(f"warm_ddim_steps must be in [1, warm_step + 1 = {policy.warm_step + 1}], "
+                     f"got {policy.warm_ddim_steps}")
+  if not 1 <= policy.select_samples <= 64:
+    raise ValueError(f"select_samples must be in [1, 64], got {policy.select_samples}")
+  if not 1 <= policy.select_lookahead <= cfg.encoder.horizon:
+    raise ValueError(f"select_lookahead must be in [1, {cfg.encoder.horizon}], got {policy.select_lookahead}")
+  if len(policy.jerk_limit) != 2 or not all(j >= 0 for j in policy.jerk_limit):
+    raise ValueError(f"jerk_limit must be two limits >= 0 in m/s^3 (rise, fall), got {policy.jerk_limit}")
+  if not 1 <= policy.select_stride <= policy.select_lookahead:
+    raise ValueError(f"select_stride must be in [1, select_lookahead], got {policy.select_stride}")
+  if policy.select_neighbours < 0:
+    raise ValueError(f"select_neighbours must be >= 0 (0: every pair), got {policy.select_neighbours}")
+  if policy.select_map_weight < 0:
+    raise ValueError(f"select_map_weight must be >= 0, got {policy.select_map_weight}")
+  if len(policy.still_gate) != 2 or not all(g >= 0 for g in policy.still_gate):
+    raise ValueError(f"still_gate must be (seconds, metres) >= 0, got {policy.still_gate}")
+  if policy.max_curvature < 0:
+    raise ValueError(f"max_curvature must be >= 0 (1/m; 0: off), got {policy.max_curvature}")
+  policy.guidance.validate()

@@ -1,0 +1,122 @@
+"""Execution: from a plan to the action executed now, through the filters on it.
+
+`execute` takes the plan's current step (or pure pursuit of its path), then, as PolicyConfig
+turns them on, limits the jerk, holds braking at standstill and bounds the curvature; `ensemble_plans` blends consecutive plans before that (temporal ensembling). The plan
+itself is never changed by a filter: the next replan starts from the state the filtered action
+led to.
+"""
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from pcdiff_jax.config import Config
+from pcdiff_jax.policy.config import PolicyConfig
+from pcdiff_jax.policy.planning import advance_plan
+from pcdiff_jax.sim import datatypes, dynamics, geometry
+from pcdiff_jax.sim.datatypes import Action, Array, ObjectType, SimulatorState
+
+STOPPED_REVERSE_SPEED = 0.1   # m/s: slower reversing is a stop (float error, log noise), not a manoeuvre
+
+
+def execute(state: SimulatorState, plan: Array, path: Array, age, policy: PolicyConfig, cfg: Config) -> Array:
+  """(O, 2) the actions executed now: the plan's (O, T, 2) step `age` (or pure pursuit of its
+  path (O, T, 2), execute="track"), through the filters policy turns on."""
+  if policy.execute == "track":
+    now = _track(state, path, age, policy.track_steps, cfg)
+  else:
+    now = jnp.take(plan, age, axis=1)
+  if any(policy.jerk_limit):
+    now = limit_jerk(state, now, policy.jerk_limit, cfg.kinematics.dt)
+  if policy.stop_hold:
+    now = hold_at_stop(state, now, cfg.kinematics.dt)
+  if policy.max_curvature > 0:
+    now = limit_curvature(state, now, policy.max_curvature, cfg.kinematics.dt)
+  return now
+
+
+def controlled_action(state: SimulatorState, controlled: Array, planned: Array, now: Array) -> Action:
+  """Action (O, 2): the plan's for planned agents; a controlled agent the plan
+  missed (more controlled agents than the model's cap) keeps its speed and
+  heading (zero action) rather than vanish. Valid for every controlled agent
+  alive at this step."""
+  valid = controlled & state.current_sim_trajectory.valid[..., 0]
+  return Action(data=jnp.where((valid & planned)[:, None], now, 0.0), valid=valid[:, None])
+
+
+def ensemble_plans(previous: Array, previous_valid: Array, executed: Array, plan: Array,
+                   plan_valid: Array, weight) -> Array:
+  """(O, T, 2) weight * previous + (1 - weight) * plan over the steps both
+  cover, with `previous` advanced by the `executed` actions (a traced int);
+  the new plan alone where the previous one has ended or an agent had none.
+  weight: () or one per action channel (2,)."""
+  horizon = plan.shape[1]
+  both = ((jnp.arange(horizon) < horizon - executed)[None, :, None]
+          & (previous_valid & plan_valid)[:, None, None])
+  previous = advance_plan(previous, executed)
+  weight = jnp.broadcast_to(jnp.asarray(weight, plan.dtype), plan.shape)
+  blended = weight * previous + (1.0 - weight) * plan
+  return jnp.where(both, blended, plan)
+
+
+def _track(state: SimulatorState, path: Array, age: Array, steps: int, cfg: Config) -> Array:
+  """(O, 2) pure-pursuit actions from each object's simulated state towards the
+  plan's world-frame path (O, T, 2) `steps` points past step `age` (clamped
+  to the plan's end)."""
+  cur = state.current_sim_trajectory
+  last = path.shape[1] - 1
+  at = lambda k: jnp.take(path, jnp.clip(age + k, 0, last), axis=1)          # (O, 2)
+  xy, yaw = cur.xy[:, 0], cur.yaw[:, 0]
+  speed = jnp.sum(cur.vel_xy[:, 0] * geometry.unit(yaw), -1)
+  local = lambda p: geometry.to_local(p, xy, yaw)
+  action = dynamics.pure_pursuit(local(at(steps - 1)), local(at(steps - 2)), speed, steps, cfg.kinematics.dt)
+  return dynamics.clip_action(action, cfg.kinematics)
+
+
+def executed_accel(state: SimulatorState, dt: float) -> Array:
+  """(O,) each object's acceleration along its heading over the last step
+  (0 at the first step of a log and where either step is invalid)."""
+  sim = state.sim_trajectory
+  fields = (sim.vel_x, sim.vel_y, sim.yaw, sim.valid)      # only what the speeds need, not every field
+  (vx, vy, yaw, ok), (vx0, vy0, yaw0, ok0) = (
+      [a[..., 0] for a in datatypes.slice_time(fields, t)]
+      for t in (state.timestep, jnp.maximum(state.timestep - 1, 0)))
+  speed = lambda x, y, heading: x * jnp.cos(heading) + y * jnp.sin(heading)
+  valid = ok & ok0 & (state.timestep > 0)
+  return jnp.where(valid, (speed(vx, vy, yaw) - speed(vx0, vy0, yaw0)) / dt, 0.0)
+
+
+def limit_jerk(state: SimulatorState, actions: Array, limit, dt: float) -> Array:
+  """(O, 2) actions whose acceleration is kept within [a - fall * dt,
+  a + rise * dt] of the executed one a (`executed_accel`); limit (rise,
+  fall) in m/s^3, 0 for no limit on that side."""
+  rise, fall = limit
+  accel, last = actions[:, 0], executed_accel(state, dt)
+  if rise > 0:
+    accel = jnp.minimum(accel, last + rise * dt)
+  if fall > 0:
+    accel = jnp.maximum(accel, last - fall * dt)
+  return actions.at[:, 0].set(accel)
+
+
+def hold_at_stop(state: SimulatorState, actions: Array, dt: float) -> Array:
+  """(O, 2) actions whose braking stops at standstill: an agent moving forward
+  or stopped (signed speed v > -STOPPED_REVERSE_SPEED) gets an acceleration
+  of at least -v / dt, so it ends the step at v >= 0 instead of backing up;
+  an agent reversing faster is left alone."""
+  v = dynamics.states_from_trajectory(state.current_sim_trajectory)[:, 0, dynamics.V]
+  accel = actions[:, 0]
+  return actions.at[:, 0].set(jnp.where(v > -STOPPED_REVERSE_SPEED, jnp.maximum(accel, -v / dt), accel))
+
+
+def limit_curvature(state: SimulatorState, actions: Array, max_curvature: float, dt: float) -> Array:
+  """(O, 2) actions whose yaw rate a wheeled object can follow: a vehicle or
+  cyclist turns only by moving, |psi_dot| <= max_curvature (1/m) x |its speed
+  after this step's acceleration|. The kinematic model would otherwise spin a
+  parked car in place, swinging its corners into its neighbours in a parking
+  row. Pedestrians and other objects keep their yaw rate."""
+  v = dynamics.states_from_trajectory(state.current_sim_trajectory)[:, 0, dynamics.V]
+  speed = jnp.abs(v + actions[:, 0] * dt)
+  types = state.object_metadata.object_types
+  wheeled = (types == ObjectType.VEHICLE) | (types == ObjectType.CYCLIST)
+  bound = jnp.where(wheeled, max_curvature * speed, jnp.inf)
+  return actions.at[:, 1].set(jnp.clip(actions[:, 1], -bound, bound))

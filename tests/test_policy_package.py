@@ -1,0 +1,98 @@
+"""The policy package reproduces the single-module policy it replaced, bit for bit on CPU.
+
+tests/data/policy_rollouts.npz holds short closed-loop rollouts (and one stateless `policy.step`)
+recorded with the policy before it was split into `pcdiff_jax/policy/` (commit e1ec5d4: this file's
+__main__ runs on either), on CPU: `PYTHONPATH=.:tests python tests/test_policy_package.py`.
+Re-record it only for a change meant to move the numbers.
+"""
+from __future__ import annotations
+
+import pathlib
+import platform
+
+import jax
+import numpy as np
+import pytest
+
+from conftest import build_tiny_models, make_scene
+from pcdiff_jax import policy
+from pcdiff_jax.config import get_config
+from pcdiff_jax.model import guidance as guidance_lib
+from pcdiff_jax.sim import env
+
+CFG = get_config("tiny")
+REFERENCE = pathlib.Path(__file__).parent / "data" / "policy_rollouts.npz"
+NUM_STEPS = 5
+# name -> PolicyConfig: the defaults, the new gates on the executed action, and the other branches
+# of planning (track execution, consistent noise, top-1 prior centre, cold plans, guidance).
+SETTINGS = {
+    # The defaults the reference was recorded with (the still gate and the curvature bound came
+    # on by default after it; "gates" covers them).
+    "defaults": policy.PolicyConfig(still_gate=(0.0, 0.0), max_curvature=0.0),
+    "gates": policy.PolicyConfig(still_gate=(2.0, 2.0), max_curvature=0.05),
+    "track": policy.PolicyConfig(execute="track", consistent_noise=True, prior_centre="top1",
+                                 replan_every=2, select_samples=2, jerk_limit=(1.0, 0.0)),
+    "cold_guided": policy.PolicyConfig(warm_start=False, select_samples=1, ddim_steps=2,
+                                       temporal_ensemble=(0.0, 0.0), stop_hold=False,
+                                       guidance=guidance_lib.GuidanceConfig(mode="objective")),
+}
+
+
+def _scene():
+  # Object 2 is stopped (the still gate's case) and object 3 crawls.
+  return env.reset(make_scene(num_steps=91, speeds=(10.0, 8.0, 0.0, 0.3)))
+
+
+def _outputs(models) -> dict[str, np.ndarray]:
+  """{name: array} for every setting: the rollout's executed actions (T, O, 2), their valid mask
+  (T, O, 1) and the simulated poses and speeds (O, 91) at its end; and one stateless step."""
+  state, out = _scene(), {}
+  for name, pol in SETTINGS.items():
+    run = jax.jit(lambda s, r, m, pol=pol: env.rollout(s, policy.actor(CFG, pol), NUM_STEPS, r, params=m))
+    res = jax.device_get(run(state, jax.random.key(3), models))
+    traj = res.final_state.sim_trajectory
+    out[f"{name}/action"] = np.asarray(res.actions.data)
+    out[f"{name}/valid"] = np.asarray(res.actions.valid)
+    out[f"{name}/controlled"] = np.asarray(res.is_controlled)
+    for field in ("x", "y", "yaw", "vel_x", "vel_y"):
+      out[f"{name}/{field}"] = np.asarray(getattr(traj, field))
+  step = jax.jit(lambda s, r, m: policy.step(s, m, CFG, r, SETTINGS["gates"]))
+  action, controlled = jax.device_get(step(state, jax.random.key(4), models))
+  out["step/action"], out["step/valid"] = np.asarray(action.data), np.asarray(action.valid)
+  out["step/controlled"] = np.asarray(controlled)
+  return out
+
+
+def machine() -> str:
+  """What decides the CPU program's last bits: the jax and jaxlib versions and the CPU's vector units."""
+  from importlib import metadata
+  flags = set()
+  if pathlib.Path("/proc/cpuinfo").exists():
+    for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines():
+      if line.startswith("flags"):
+        flags = set(line.split(":", 1)[1].split()) & {"avx", "avx2", "fma", "avx512f", "avx512_bf16", "amx_tile"}
+        break
+  return f"jax {metadata.version('jax')} jaxlib {metadata.version('jaxlib')} {platform.machine()} {' '.join(sorted(flags))}"
+
+
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="the reference was recorded on CPU")
+def test_rollouts_match_the_single_module_policy(tiny_models):
+  """Bit for bit where jax, jaxlib and the CPU's vector units are those of the recording; elsewhere
+  XLA may compile other instructions (FMA, vector widths), so to float32 rounding over 5 steps."""
+  if not REFERENCE.exists():
+    pytest.skip(f"{REFERENCE} not recorded: run this file's __main__ on the single-module policy (commit e1ec5d4)")
+  reference = dict(np.load(REFERENCE))
+  recorded_on = str(reference.pop("machine"))
+  got = _outputs(tiny_models)
+  assert sorted(got) == sorted(reference)
+  for key, want in reference.items():
+    if recorded_on == machine():
+      np.testing.assert_array_equal(got[key], want, err_msg=key)
+    else:
+      np.testing.assert_allclose(got[key], want, rtol=1e-4, atol=1e-4, err_msg=f"{key} (recorded on {recorded_on})")
+
+
+if __name__ == "__main__":
+  REFERENCE.parent.mkdir(exist_ok=True)
+  np.savez_compressed(REFERENCE, machine=np.asarray(machine()), **_outputs(build_tiny_models()))
+  print(f"wrote {REFERENCE} ({REFERENCE.stat().st_size} bytes)")
