@@ -80,7 +80,7 @@ def test_rollout_help_is_short_and_lists_the_policy_fields(capsys):
   with pytest.raises(SystemExit):
     rollout.parse_args(["--help"])
   text = capsys.readouterr().out
-  assert "select_samples=8" in text and "still_gate=0.0,0.0" in text and "--select-samples" not in text
+  assert "select_samples=8" in text and "still_gate=2.0,1.0" in text and "--select-samples" not in text
   options = [line for line in text.splitlines() if line.startswith("  -")]
   assert len(options) <= 36, options   # 52 with one flag per policy field
 

@@ -31,9 +31,11 @@ SETTINGS = {
     "defaults": policy.PolicyConfig(still_gate=(0.0, 0.0), max_curvature=0.0),
     "gates": policy.PolicyConfig(still_gate=(2.0, 2.0), max_curvature=0.05),
     "track": policy.PolicyConfig(execute="track", consistent_noise=True, prior_centre="top1",
-                                 replan_every=2, select_samples=2, jerk_limit=(1.0, 0.0)),
+                                 replan_every=2, select_samples=2, jerk_limit=(1.0, 0.0),
+                                 still_gate=(0.0, 0.0), max_curvature=0.0),
     "cold_guided": policy.PolicyConfig(warm_start=False, select_samples=1, ddim_steps=2,
                                        temporal_ensemble=(0.0, 0.0), stop_hold=False,
+                                       still_gate=(0.0, 0.0), max_curvature=0.0,
                                        guidance=guidance_lib.GuidanceConfig(mode="objective")),
 }
 
