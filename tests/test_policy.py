@@ -240,7 +240,7 @@ def test_temporal_ensemble_averages_the_plans_made_for_each_step(models):
   # In closed loop: the executed action is the ensemble's, replanning every step.
   state = env.reset(make_scene(num_steps=91))
   pcfg = policy.PolicyConfig(select_samples=1, ddim_steps=2, temporal_ensemble=(0.5, 0.5), jerk_limit=(0.0, 0.0),
-                             stop_hold=False)
+                             stop_hold=False, still_gate=(0.0, 0.0), max_curvature=0.0)
   act = policy.actor(CFG, pcfg)
   select = jax.jit(act.select_action)
   first = select(models, state, act.init(jax.random.key(0), state), jax.random.key(1))
