@@ -74,7 +74,7 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--max-agents", type=int, default=64,
                  help="learned methods: sim agents they drive besides the SDC, nearest it first (their agent "
                       "cap); IDM drives the others")
-  p.add_argument("--ddim-steps", type=int, default=evaluation.EvalConfig.ddim_steps)
+  p.add_argument("--ddim-steps", type=int, default=PolicyConfig.ddim_steps)
   p.add_argument("--replan-every", type=int, default=1,
                  help="steps between plans of the diffusion policies (1 = 10 Hz, the challenge's rule)")
   p.add_argument("--warm-start", action=argparse.BooleanOptionalAction, default=True,
