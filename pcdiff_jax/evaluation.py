@@ -218,7 +218,9 @@ def _markdown(summary: dict) -> str:
            "|" + "---|" * (len(HEADLINE) + 1), f"| {summary['method']} | " + " | ".join(cells) + " |", ""]
   r = summary["rates"]
   lines += [f"Mean ± std over {summary['seeds']} seed(s), {summary['num_rollouts']} rollout(s) per "
-            f"scenario and seed (minADE: the best of them). Vehicle-vehicle collision rate "
+            f"scenario and seed (minADE: the best of them). Collision rate with the objects that "
+            f"enter later counted as partners too: {100 * r['collision_with_entering_rate']:.2f}%. "
+            f"Vehicle-vehicle collision rate "
             f"{100 * r['vehicle_collision_rate']:.2f}%; vehicles starting off-road "
             f"{100 * r['start_offroad_fraction']:.2f}%; of the off-road rate, "
             f"{100 * r['offroad_past_log_rate']:.2f} points are vehicles that left the road only "

@@ -50,13 +50,31 @@ def test_pairs_overlapping_at_start_are_not_collisions():
   assert overlap.shape == (4, 31) and bool(overlap[0].all())
 
 
+def test_objects_entering_later_are_not_collision_partners():
+  """Agent 2 is parked; its track ends at step 8 and object 3 (invisible until step 12: a new
+  track, as after a tracker's re-identification) appears on it and drives off. Keeping agent 2
+  in place is no collision with a sim agent; `collided_with_entering` still counts it."""
+  s = make_scene(xs=(0.0, 20.0, 40.0, 40.0), ys=(-2.0, 2.0, -2.0, -2.0), speeds=(10.0, 8.0, 0.0, 5.0))
+  log = s.log_trajectory
+  t = jnp.arange(log.num_timesteps)
+  valid = log.valid.at[3].set(t >= 12).at[2].set(t < 8)
+  log = log.replace(valid=valid, x=log.x.at[3].set(jnp.where(t >= 12, 40.0 + 5.0 * (t - 12) * 0.1, 40.0)))
+  s = s.replace(log_trajectory=log)
+  sim = log.replace(valid=log.valid.at[2].set(True))             # the sim keeps agent 2 where it was
+  c = _counts(s, sim, k=3)
+  assert int(c.num_evaluated) == 3
+  assert int(c.collided) == 0 and int(c.collided_with_entering) == 1
+  assert c.rates()["collision_with_entering_rate"] == 1 / 3
+
+
 def test_log_replay_rates_on_the_real_record(real_state):
   """Real WOMD, log replay over 8 s, the 64 agents nearest the SDC.
 
   Measured: off-road rate 0 (14 of 59 vehicles start off the road: parked
-  cars); vehicle-vehicle collisions 0; all-object collision rate 5/64: the
-  log's own pedestrian boxes (0.7 m) overlap inside a walking group and
-  brush two parked cars. These are label overlaps, not simulator errors.
+  cars); vehicle-vehicle collisions 0; collision rate 2/64, 5/64 with the
+  objects that enter later as partners: the log's own pedestrian boxes
+  (0.7 m) overlap inside a walking group and brush two parked cars. These are
+  label overlaps, not simulator errors.
   """
   start = 10
   state = env.reset(real_state)
@@ -66,7 +84,7 @@ def test_log_replay_rates_on_the_real_record(real_state):
                            state.object_metadata.object_types, evaluated, start)
   assert int(c.num_evaluated) == 64 and int(c.num_vehicles) == 59
   assert int(c.became_offroad) == 0 and int(c.start_offroad) == 14
-  assert int(c.vehicle_collided) == 0 and int(c.collided) == 5
+  assert int(c.vehicle_collided) == 0 and int(c.collided) == 2 and int(c.collided_with_entering) == 5
   types = np.asarray(state.object_metadata.object_types)
   pairs = np.asarray(metrics.pairwise_overlap(state.log_trajectory))[11:]
   involved = np.nonzero(pairs.any(axis=(0, 2)) & np.asarray(evaluated))[0]

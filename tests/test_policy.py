@@ -267,12 +267,16 @@ def test_jerk_limit_moves_the_executed_acceleration_by_a_bounded_step():
   moved = env.step(state, Action(data=applied, valid=jnp.ones((4, 1), bool)), jnp.array([False, True, True, True]))
   np.testing.assert_allclose(np.asarray(policy.executed_accel(moved, dt))[1:], [1.5, -2.0, 0.5], atol=1e-3)
   wanted = jnp.array([[0.0, 0.0], [5.0, 0.2], [-8.0, 0.0], [0.4, -0.1]])
-  limited = np.asarray(jax.jit(lambda s, a: policy.limit_jerk(s, a, (2.0, 10.0), dt))(moved, wanted))
+  last = policy.executed_accel(moved, dt)
+  limited = np.asarray(jax.jit(lambda a, l: policy.limit_jerk(a, l, (2.0, 10.0), dt))(wanted, last))
   # Up by at most 2 m/s^3 x 0.1 s, down by at most 10 x 0.1; a small change and the yaw rates pass.
   np.testing.assert_allclose(limited[1:, 0], [1.5 + 0.2, -2.0 - 1.0, 0.4], atol=1e-3)
   np.testing.assert_array_equal(limited[:, 1], np.asarray(wanted)[:, 1])
-  one_sided = np.asarray(policy.limit_jerk(moved, wanted, (0.0, 10.0), dt))
+  one_sided = np.asarray(policy.limit_jerk(wanted, last, (0.0, 10.0), dt))
   assert abs(one_sided[1, 0] - 5.0) < 1e-6                       # rise 0: no limit upwards
+  # No executed acceleration yet (NaN, a rollout's first step): the plan's passes.
+  free = np.asarray(policy.limit_jerk(wanted, jnp.full((4,), jnp.nan), (2.0, 10.0), dt))
+  np.testing.assert_array_equal(free, np.asarray(wanted))
   with pytest.raises(ValueError, match="jerk_limit"):
     policy.actor(CFG, policy.PolicyConfig(jerk_limit=(-1.0, 0.0)))
 
@@ -444,3 +448,28 @@ def test_still_gate_keeps_agents_the_proposals_keep_still(models):
   np.testing.assert_allclose(speed, 0.0, atol=1e-5)
   with pytest.raises(ValueError, match="still_gate"):
     policy.actor(CFG, policy.PolicyConfig(still_gate=(2.0, -1.0)))
+
+
+def test_a_noisy_logged_speed_does_not_force_an_acceleration(models):
+  """A logged speed jump at the rollout's start (real logs' noisy speeds and headings read as
+  tens of m/s^2) must not become the jerk limit's reference: the first executed acceleration is
+  the plan's, and the next ones stay within the limit of what the policy executed."""
+  state = env.reset(make_scene(num_steps=91))
+  log = state.log_trajectory
+  t = int(state.timestep)
+  jump = log.replace(vel_x=log.vel_x.at[:, t - 1].multiply(0.2))     # the step before: 5x slower
+  noisy = state.replace(log_trajectory=jump, sim_trajectory=jump)
+  assert float(jnp.max(jnp.abs(policy.executed_accel(noisy, CFG.kinematics.dt)))) > 20.0
+  outs = {}
+  for jerk in ((1.5, 5.0), (0.0, 0.0)):
+    act = policy.actor(CFG, policy.PolicyConfig(select_samples=1, jerk_limit=jerk, still_gate=(0.0, 0.0)))
+    outs[jerk] = act.select_action(models, noisy, act.init(jax.random.PRNGKey(0), noisy), jax.random.PRNGKey(1))
+  limited, free = outs[(1.5, 5.0)], outs[(0.0, 0.0)]
+  controlled = np.asarray(limited.is_controlled)
+  first = np.asarray(limited.action.data)[controlled]
+  np.testing.assert_allclose(first, np.asarray(free.action.data)[controlled], atol=1e-6)   # the plan's own
+  np.testing.assert_allclose(np.asarray(limited.actor_state.accel)[controlled], first[:, 0], atol=1e-6)
+  # The stateless step reads the state's estimate, bounded by the model's acceleration limit.
+  action, _ = policy.step(noisy, models, CFG, jax.random.PRNGKey(1),
+                          policy.PolicyConfig(select_samples=1, still_gate=(0.0, 0.0)))
+  assert np.all(np.abs(np.asarray(action.data)[:, 0]) <= CFG.kinematics.max_accel + 1e-5)

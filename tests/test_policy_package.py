@@ -1,9 +1,11 @@
-"""The policy package reproduces the single-module policy it replaced, bit for bit on CPU.
+"""The policy package's closed-loop outputs, pinned bit for bit on CPU.
 
-tests/data/policy_rollouts.npz holds short closed-loop rollouts (and one stateless `policy.step`)
-recorded with the policy before it was split into `pcdiff_jax/policy/` (commit e1ec5d4: this file's
-__main__ runs on either), on CPU: `PYTHONPATH=.:tests python tests/test_policy_package.py`.
-Re-record it only for a change meant to move the numbers.
+tests/data/policy_rollouts.npz holds short closed-loop rollouts (and one stateless `policy.step`).
+It was first recorded with the single-module policy the package replaced (commit e1ec5d4), which
+the package matched bit for bit; it was re-recorded once, when the jerk limit's reference became
+the policy's own executed acceleration and the kinematic speed the velocity along the heading
+(CHANGELOG.md). Record it with `PYTHONPATH=.:tests python tests/test_policy_package.py`, and
+only for a change meant to move the numbers.
 """
 from __future__ import annotations
 
@@ -78,11 +80,11 @@ def machine() -> str:
 
 
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="the reference was recorded on CPU")
-def test_rollouts_match_the_single_module_policy(tiny_models):
+def test_rollouts_match_the_recorded_policy(tiny_models):
   """Bit for bit where jax, jaxlib and the CPU's vector units are those of the recording; elsewhere
   XLA may compile other instructions (FMA, vector widths), so to float32 rounding over 5 steps."""
   if not REFERENCE.exists():
-    pytest.skip(f"{REFERENCE} not recorded: run this file's __main__ on the single-module policy (commit e1ec5d4)")
+    pytest.skip(f"{REFERENCE} not recorded: run this file's __main__")
   reference = dict(np.load(REFERENCE))
   recorded_on = str(reference.pop("machine"))
   got = _outputs(tiny_models)

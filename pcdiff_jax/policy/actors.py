@@ -29,7 +29,9 @@ class PlanState:
   adversary () object slot of the pursuer under adversarial guidance (-1: none);
   noise (O, d) each object's initial DDIM noise (consistent_noise); road the
   scene's road signed-distance field for guidance, built once at `init`;
-  path (O, T, 2) the last plan's positions in the world frame (execute="track")."""
+  path (O, T, 2) the last plan's positions in the world frame (execute="track"); accel (O,)
+  the acceleration executed at the last step, NaN before the first (the jerk limit's
+  reference)."""
   controlled: Array
   plan: Array
   path: Array
@@ -38,6 +40,7 @@ class PlanState:
   adversary: Array
   noise: Array
   road: RoadField
+  accel: Array
 
 
 def step(state: SimulatorState, models: Models, cfg: Config, rng: Array,
@@ -84,7 +87,8 @@ def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
                      age=jnp.asarray(policy.replan_every, jnp.int32),   # plan at the first call
                      adversary=planning.pursuer_of(state, cfg, policy.guidance),
                      noise=jax.random.normal(jax.random.fold_in(rng, 1), (num_objects, cfg.diffusion.latent_dim)),
-                     road=planning.road_for(state, policy))
+                     road=planning.road_for(state, policy),
+                     accel=jnp.full((num_objects,), jnp.nan, jnp.float32))
 
   def replan(models, state, ps: PlanState, rng):
     """A new plan (O, T, 2), which objects have one (O,) and its path (O, T, 2), blended with
@@ -104,9 +108,11 @@ def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
     plan, plan_valid, path = jax.lax.cond(
         due, lambda: replan(models, state, ps, rng), lambda: (ps.plan, ps.plan_valid, ps.path))
     age = jnp.where(due, 0, ps.age)
-    now = execution.execute(state, plan, path, age, policy, cfg)                               # (O, 2)
+    now = execution.execute(state, plan, path, age, policy, cfg, ps.accel)                     # (O, 2)
     action = execution.controlled_action(state, ps.controlled, plan_valid, now)
-    new = ps.replace(plan=plan, plan_valid=plan_valid, path=path, age=age + 1)
+    executed = jnp.clip(now[:, 0], -cfg.kinematics.max_accel, cfg.kinematics.max_accel)
+    accel = jnp.where(action.valid[:, 0], executed, jnp.nan)
+    new = ps.replace(plan=plan, plan_valid=plan_valid, path=path, age=age + 1, accel=accel)
     return ActorOutput(actor_state=new, action=action, is_controlled=ps.controlled)
 
   name = "pcdiff" if policy.prior_init else "pcdiff-noprior"

@@ -7,6 +7,8 @@ led to.
 """
 from __future__ import annotations
 
+from typing import Optional
+
 import jax.numpy as jnp
 
 from pcdiff_jax.config import Config
@@ -18,15 +20,21 @@ from pcdiff_jax.sim.datatypes import Action, Array, ObjectType, SimulatorState
 STOPPED_REVERSE_SPEED = 0.1   # m/s: slower reversing is a stop (float error, log noise), not a manoeuvre
 
 
-def execute(state: SimulatorState, plan: Array, path: Array, age, policy: PolicyConfig, cfg: Config) -> Array:
+def execute(state: SimulatorState, plan: Array, path: Array, age, policy: PolicyConfig, cfg: Config,
+            last_accel: Optional[Array] = None) -> Array:
   """(O, 2) the actions executed now: the plan's (O, T, 2) step `age` (or pure pursuit of its
-  path (O, T, 2), execute="track"), through the filters policy turns on."""
+  path (O, T, 2), execute="track"), through the filters policy turns on. last_accel (O,): the
+  acceleration this policy executed at its previous step, NaN where it executed none (the
+  jerk limit leaves those free); None reads it from the state (`executed_accel`)."""
   if policy.execute == "track":
     now = _track(state, path, age, policy.track_steps, cfg)
   else:
     now = jnp.take(plan, age, axis=1)
   if any(policy.jerk_limit):
-    now = limit_jerk(state, now, policy.jerk_limit, cfg.kinematics.dt)
+    if last_accel is None:
+      last_accel = jnp.clip(executed_accel(state, cfg.kinematics.dt), -cfg.kinematics.max_accel,
+                            cfg.kinematics.max_accel)
+    now = limit_jerk(now, last_accel, policy.jerk_limit, cfg.kinematics.dt)
   if policy.stop_hold:
     now = hold_at_stop(state, now, cfg.kinematics.dt)
   if policy.max_curvature > 0:
@@ -85,16 +93,22 @@ def executed_accel(state: SimulatorState, dt: float) -> Array:
   return jnp.where(valid, (speed(vx, vy, yaw) - speed(vx0, vy0, yaw0)) / dt, 0.0)
 
 
-def limit_jerk(state: SimulatorState, actions: Array, limit, dt: float) -> Array:
+def limit_jerk(actions: Array, last: Array, limit, dt: float) -> Array:
   """(O, 2) actions whose acceleration is kept within [a - fall * dt,
-  a + rise * dt] of the executed one a (`executed_accel`); limit (rise,
-  fall) in m/s^3, 0 for no limit on that side."""
+  a + rise * dt] of the last executed one a = last (O,); NaN in `last` leaves
+  that object free. limit (rise, fall) in m/s^3, 0 for no limit on that side.
+
+  The reference is what the policy executed, not the log: a rollout's first
+  step has none, because a noisy logged speed (or heading) reads as a large
+  acceleration that the limit would then force on the agent for seconds
+  (docs/RESULTS.md, "Table I (real WOMD val)")."""
   rise, fall = limit
-  accel, last = actions[:, 0], executed_accel(state, dt)
+  accel = actions[:, 0]
+  free = jnp.isnan(last)
   if rise > 0:
-    accel = jnp.minimum(accel, last + rise * dt)
+    accel = jnp.where(free, accel, jnp.minimum(accel, last + rise * dt))
   if fall > 0:
-    accel = jnp.maximum(accel, last - fall * dt)
+    accel = jnp.where(free, accel, jnp.maximum(accel, last - fall * dt))
   return actions.at[:, 0].set(accel)
 
 

@@ -128,11 +128,15 @@ def inverse(states: Array, valid: Array, cfg: KinematicsConfig = KinematicsConfi
 def states_from_trajectory(traj: Trajectory) -> Array:
   """(..., O, T, 4) kinematic states [x, y, yaw, v] of a trajectory.
 
-  v is the signed speed along the box heading (negative when reversing).
+  v is the velocity along the box heading (negative when reversing), the
+  speed the planner's features read (`model.features`' agent-frame vx). A
+  box whose heading disagrees with its motion (some converted real scenes
+  have such headings) keeps only the part of its velocity along the
+  heading: giving it the full speed with the projection's sign would start
+  a car moving sideways in the log off in reverse at that speed.
   """
   heading = geometry.unit(traj.yaw)
   v = jnp.sum(traj.vel_xy * heading, -1)
-  v = jnp.sign(v) * traj.speed  # keep |vel| exactly, sign from the heading
   return jnp.stack([traj.x, traj.y, traj.yaw, v], axis=-1)
 
 

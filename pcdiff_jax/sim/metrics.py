@@ -5,9 +5,15 @@ step), `offroad` (a box corner on the outer side of the nearest road edge).
 Aggregates (shared/DESIGN.md "Metric definitions"), counted per scenario so
 that batches and seeds sum exactly:
 
-- collision: an evaluated agent overlaps another valid object at some
-  simulated step; pairs that already overlap in the log at the start step are
-  not counted (WOMD has such pairs). `collided_any` counts them too;
+- collision: an evaluated agent overlaps another object present at the start
+  step (WOSAC's sim agents) at some simulated step; pairs that already overlap
+  in the log at the start step are not counted (WOMD has such pairs). Objects
+  whose track starts later are replayed from the log but are not collision
+  partners: in real logs such a track often continues one that ended (the
+  tracker lost a parked car and found it again under a new id), so the car
+  kept in place would "collide" with itself (`collided_with_entering` counts
+  them; docs/RESULTS.md, "Table I (real WOMD val)"). `collided_any` counts every
+  overlap with any object;
   `vehicle_collided` counts evaluated vehicles hitting another vehicle (WOMD
   logs have pedestrian boxes that overlap each other and parked cars).
 - off-road: an evaluated vehicle on the road at the start step is off it at
@@ -111,6 +117,7 @@ class EventCounts:
   """Per-scenario counts (...,) int32; sum over scenarios, then divide."""
   num_evaluated: Array
   collided: Array
+  collided_with_entering: Array  # collided, objects whose track starts after the start step included
   collided_any: Array
   vehicle_collided: Array      # evaluated vehicles overlapping another vehicle
   num_vehicles: Array          # evaluated vehicles
@@ -125,6 +132,7 @@ class EventCounts:
     on_road = total.num_vehicles - total.start_offroad
     return {
         "collision_rate": total.collided / max(total.num_evaluated, 1.0),
+        "collision_with_entering_rate": total.collided_with_entering / max(total.num_evaluated, 1.0),
         "collision_any_rate": total.collided_any / max(total.num_evaluated, 1.0),
         "vehicle_collision_rate": total.vehicle_collided / max(total.num_vehicles, 1.0),
         "offroad_rate": total.became_offroad / max(on_road, 1.0),
@@ -163,7 +171,9 @@ def event_counts(sim: Trajectory, log: Trajectory, roadgraph: RoadgraphPoints,
       lambda a: a[..., start_step:start_step + 1], log))[..., 0, :, :]
   later = pairs & after[:, None, None]
   collided_any = jnp.any(later, axis=(-3, -1))                 # (..., O)
-  new_pairs = later & ~log_pairs_at_start[..., None, :, :]
+  new_with_entering = later & ~log_pairs_at_start[..., None, :, :]
+  present = sim.valid[..., start_step]                         # (..., O) the sim agents
+  new_pairs = new_with_entering & present[..., None, None, :]
   collided = jnp.any(new_pairs, axis=(-3, -1))
   is_vehicle = object_types == ObjectType.VEHICLE
   vehicle_collided = jnp.any(new_pairs & is_vehicle[..., None, None, :], axis=(-3, -1))
@@ -188,6 +198,7 @@ def event_counts(sim: Trajectory, log: Trajectory, roadgraph: RoadgraphPoints,
   return EventCounts(
       num_evaluated=count(evaluated),
       collided=count(collided & evaluated),
+      collided_with_entering=count(jnp.any(new_with_entering, axis=(-3, -1)) & evaluated),
       collided_any=count(collided_any & evaluated),
       vehicle_collided=count(vehicle_collided & vehicle),
       num_vehicles=count(vehicle),
