@@ -6,8 +6,25 @@ import argparse
 import os
 
 
+def shipped_model_above(path: str):
+  """The shipped model folder (one with a MODEL_CARD.md) that `path` is or lies in, else None."""
+  folder = os.path.abspath(path)
+  while True:
+    if os.path.isfile(os.path.join(folder, "MODEL_CARD.md")):
+      return folder
+    parent = os.path.dirname(folder)
+    if parent == folder:
+      return None
+    folder = parent
+
+
 def output_dir(path: str) -> str:
-  """A folder to write into: new, or an existing folder (never a file)."""
+  """A folder to write into: new, or an existing folder (never a file, never inside a shipped
+  model, which every command only reads)."""
+  shipped = shipped_model_above(path)
+  if shipped is not None:
+    raise argparse.ArgumentTypeError(f"{path} is inside the shipped model {shipped} (it has a MODEL_CARD.md), "
+                                     "which is read-only: write to a new folder, e.g. under runs/")
   if os.path.exists(path) and not os.path.isdir(path):
     raise argparse.ArgumentTypeError(f"{path} exists and is a file, not a folder: give a folder path")
   parent = os.path.dirname(os.path.abspath(path))

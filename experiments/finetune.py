@@ -81,7 +81,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                       "instead of --from's; the rounds re-train the denoiser on it")
   p.add_argument("--data", required=True, nargs="+", help="training TFRecord file(s) or glob(s)")
   p.add_argument("--workdir", required=True, type=_args.output_dir)
-  p.add_argument("--cache-dir", default=None, help="logged-example cache (default WORKDIR/cache)")
+  p.add_argument("--cache-dir", default=None, type=_args.output_dir, help="logged-example cache (default WORKDIR/cache)")
   p.add_argument("--policy", choices=("pcdiff", "simpl-ar"), default="pcdiff",
                  help="whose closed loop is rolled out and fine-tuned: pcdiff (the denoiser, and the "
                       "encoder with --encoder-steps) or simpl-ar (the SIMPL-AR baseline's own encoder only)")

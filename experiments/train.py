@@ -40,7 +40,7 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--val-data", nargs="+", default=None,
                  help="validation TFRecords (default: --data with 'train' -> 'val')")
   p.add_argument("--workdir", required=True, type=_args.output_dir)
-  p.add_argument("--cache-dir", default=None,
+  p.add_argument("--cache-dir", default=None, type=_args.output_dir,
                  help="where example caches are kept (default WORKDIR/cache); share it between runs")
   p.add_argument("--steps", type=int, default=None, help="override total optimizer steps")
   p.add_argument("--batch-size", type=int, default=None)

@@ -158,3 +158,23 @@ def test_bench_times_a_model_folders_config_or_a_preset():
   folder = shipped.checkpoint_dir()
   assert bench._config_of(folder) == shipped.read_config(folder)   # e.g. the encoder's lane inputs
   assert bench._config_of("tiny") == get_config("tiny")
+
+
+def test_a_shipped_model_is_read_only_to_every_command(tmp_path, capsys):
+  """train, finetune and export refuse to write into a shipped model (a folder with a
+  MODEL_CARD.md, or one inside it) before they create anything there."""
+  from experiments import export, finetune, train
+  shipped = tmp_path / "pcdiff-shipped"
+  (shipped / "diffusion").mkdir(parents=True)
+  (shipped / "MODEL_CARD.md").write_text("# a shipped model\n")
+  before = sorted(p.name for p in shipped.rglob("*"))
+  for main, argv in ((train.main, ["--stage", "encoder", "--data", "x.tfrecord", "--workdir", str(shipped)]),
+                     (train.main, ["--stage", "encoder", "--data", "x.tfrecord", "--workdir", "runs/x",
+                                   "--cache-dir", str(shipped / "cache")]),
+                     (finetune.main, ["--from", str(shipped), "--data", "x.tfrecord", "--workdir", str(shipped / "ft")]),
+                     (export.main, ["--workdir", "runs/x", "--out", str(shipped)])):
+    with pytest.raises(SystemExit) as e:
+      main(argv)
+    assert e.value.code == 2
+    assert "read-only" in capsys.readouterr().err
+  assert sorted(p.name for p in shipped.rglob("*")) == before
