@@ -30,8 +30,8 @@ class PlanState:
   noise (O, d) each object's initial DDIM noise (consistent_noise); road the
   scene's road signed-distance field for guidance, built once at `init`;
   path (O, T, 2) the last plan's positions in the world frame (execute="track"); accel (O,)
-  the acceleration executed at the last step, NaN before the first (the jerk limit's
-  reference)."""
+  the acceleration executed at the last step, before the first the log's trend
+  (`execution.logged_accel`): the jerk limit's reference."""
   controlled: Array
   plan: Array
   path: Array
@@ -88,7 +88,7 @@ def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
                      adversary=planning.pursuer_of(state, cfg, policy.guidance),
                      noise=jax.random.normal(jax.random.fold_in(rng, 1), (num_objects, cfg.diffusion.latent_dim)),
                      road=planning.road_for(state, policy),
-                     accel=jnp.full((num_objects,), jnp.nan, jnp.float32))
+                     accel=execution.logged_accel(state, cfg.kinematics.dt))
 
   def replan(models, state, ps: PlanState, rng):
     """A new plan (O, T, 2), which objects have one (O,) and its path (O, T, 2), blended with

@@ -24,8 +24,9 @@ def execute(state: SimulatorState, plan: Array, path: Array, age, policy: Policy
             last_accel: Optional[Array] = None) -> Array:
   """(O, 2) the actions executed now: the plan's (O, T, 2) step `age` (or pure pursuit of its
   path (O, T, 2), execute="track"), through the filters policy turns on. last_accel (O,): the
-  acceleration this policy executed at its previous step, NaN where it executed none (the
-  jerk limit leaves those free); None reads it from the state (`executed_accel`)."""
+  acceleration this policy executed at its previous step (`logged_accel` before its first), NaN
+  where there is none (the jerk limit leaves those free); None reads it from the state
+  (`executed_accel`, within the model's bounds)."""
   if policy.execute == "track":
     now = _track(state, path, age, policy.track_steps, cfg)
   else:
@@ -93,15 +94,31 @@ def executed_accel(state: SimulatorState, dt: float) -> Array:
   return jnp.where(valid, (speed(vx, vy, yaw) - speed(vx0, vy0, yaw0)) / dt, 0.0)
 
 
+def logged_accel(state: SimulatorState, dt: float, steps: int = 10, bound: float = 4.0) -> Array:
+  """(O,) each object's mean acceleration along its heading over the last `steps` steps of its
+  trajectory, within +-bound (0 where either end is invalid): the jerk limit's reference at a
+  rollout's first step. A one-step difference of logged speeds is noise on real logs (tens of
+  m/s^2); over a second it is the trend, and the bound keeps a bad heading from setting it."""
+  sim = state.sim_trajectory
+  fields = (sim.vel_x, sim.vel_y, sim.yaw, sim.valid)
+  (vx, vy, yaw, ok), (vx0, vy0, yaw0, ok0) = (
+      [a[..., 0] for a in datatypes.slice_time(fields, t)]
+      for t in (state.timestep, jnp.maximum(state.timestep - steps, 0)))
+  speed = lambda x, y, heading: x * jnp.cos(heading) + y * jnp.sin(heading)
+  valid = ok & ok0 & (state.timestep >= steps)
+  accel = (speed(vx, vy, yaw) - speed(vx0, vy0, yaw0)) / (steps * dt)
+  return jnp.where(valid, jnp.clip(accel, -bound, bound), 0.0)
+
+
 def limit_jerk(actions: Array, last: Array, limit, dt: float) -> Array:
   """(O, 2) actions whose acceleration is kept within [a - fall * dt,
   a + rise * dt] of the last executed one a = last (O,); NaN in `last` leaves
   that object free. limit (rise, fall) in m/s^3, 0 for no limit on that side.
 
-  The reference is what the policy executed, not the log: a rollout's first
-  step has none, because a noisy logged speed (or heading) reads as a large
-  acceleration that the limit would then force on the agent for seconds
-  (docs/RESULTS.md, "Table I (real WOMD val)")."""
+  The reference is what the policy executed; at a rollout's first step it is
+  `logged_accel`, never a one-step difference of the log: on real logs that
+  reads as tens of m/s^2, which the limit would force on the agent for
+  seconds (docs/RESULTS.md, "Table I (real WOMD val)")."""
   rise, fall = limit
   accel = actions[:, 0]
   free = jnp.isnan(last)
