@@ -81,17 +81,23 @@ def _track(state: SimulatorState, path: Array, age: Array, steps: int, cfg: Conf
   return dynamics.clip_action(action, cfg.kinematics)
 
 
-def executed_accel(state: SimulatorState, dt: float) -> Array:
-  """(O,) each object's acceleration along its heading over the last step
-  (0 at the first step of a log and where either step is invalid)."""
+def _mean_accel(state: SimulatorState, dt: float, steps: int) -> Array:
+  """(O,) acceleration along the heading over the last `steps` steps (0 where either end is
+  invalid or the trajectory is shorter)."""
   sim = state.sim_trajectory
   fields = (sim.vel_x, sim.vel_y, sim.yaw, sim.valid)      # only what the speeds need, not every field
   (vx, vy, yaw, ok), (vx0, vy0, yaw0, ok0) = (
       [a[..., 0] for a in datatypes.slice_time(fields, t)]
-      for t in (state.timestep, jnp.maximum(state.timestep - 1, 0)))
+      for t in (state.timestep, jnp.maximum(state.timestep - steps, 0)))
   speed = lambda x, y, heading: x * jnp.cos(heading) + y * jnp.sin(heading)
-  valid = ok & ok0 & (state.timestep > 0)
-  return jnp.where(valid, (speed(vx, vy, yaw) - speed(vx0, vy0, yaw0)) / dt, 0.0)
+  valid = ok & ok0 & (state.timestep >= steps)
+  return jnp.where(valid, (speed(vx, vy, yaw) - speed(vx0, vy0, yaw0)) / (steps * dt), 0.0)
+
+
+def executed_accel(state: SimulatorState, dt: float) -> Array:
+  """(O,) each object's acceleration along its heading over the last step
+  (0 at the first step of a log and where either step is invalid)."""
+  return _mean_accel(state, dt, 1)
 
 
 def logged_accel(state: SimulatorState, dt: float, steps: int = 10, bound: float = 4.0) -> Array:
@@ -99,15 +105,7 @@ def logged_accel(state: SimulatorState, dt: float, steps: int = 10, bound: float
   trajectory, within +-bound (0 where either end is invalid): the jerk limit's reference at a
   rollout's first step. A one-step difference of logged speeds is noise on real logs (tens of
   m/s^2); over a second it is the trend, and the bound keeps a bad heading from setting it."""
-  sim = state.sim_trajectory
-  fields = (sim.vel_x, sim.vel_y, sim.yaw, sim.valid)
-  (vx, vy, yaw, ok), (vx0, vy0, yaw0, ok0) = (
-      [a[..., 0] for a in datatypes.slice_time(fields, t)]
-      for t in (state.timestep, jnp.maximum(state.timestep - steps, 0)))
-  speed = lambda x, y, heading: x * jnp.cos(heading) + y * jnp.sin(heading)
-  valid = ok & ok0 & (state.timestep >= steps)
-  accel = (speed(vx, vy, yaw) - speed(vx0, vy0, yaw0)) / (steps * dt)
-  return jnp.where(valid, jnp.clip(accel, -bound, bound), 0.0)
+  return jnp.clip(_mean_accel(state, dt, steps), -bound, bound)
 
 
 def limit_jerk(actions: Array, last: Array, limit, dt: float) -> Array:
