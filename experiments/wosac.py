@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
 
 from experiments import _args
@@ -184,6 +185,10 @@ def _score(args) -> int:
   return 0 if agg["num_scenarios"] else 2
 
 
+def _interrupt(signum, frame):
+  raise KeyboardInterrupt
+
+
 def main(argv=None) -> int:
   args = parse_args(argv)
   _args.setup_logging()
@@ -211,8 +216,12 @@ def main(argv=None) -> int:
     if args.replan_every != 1:
       print("warning: --replan-every > 1 is not closed loop at 10 Hz (the challenge's rule); the submission "
             "does not acknowledge it", file=sys.stderr)
+    signal.signal(signal.SIGTERM, _interrupt)   # `timeout`, a batch system: keep what is done
     summary = wosac.export(args.scenarios, args.out, cfg, _metadata(args, cfg), shard=args.shard,
                            max_scenarios=args.max_scenarios, progress=not args.no_progress)
+  except wosac.Interrupted as err:
+    print(f"warning: {err}", file=sys.stderr)
+    return 130
   except (FileNotFoundError, ValueError, RuntimeError) as err:
     print(f"error: {err}", file=sys.stderr)
     return 2

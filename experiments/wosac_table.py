@@ -1,14 +1,17 @@
 """The WOSAC table: export and score several methods on the same scenes.
 
   python -m experiments.wosac_table --scenarios ../shared/data/womd_real/val.scenario.tfrecord \
-      --methods log cv idm simpl-ar pcdiff --checkpoint checkpoints/pcdiff-cpu-v8 --out runs/wosac/real_val
+      --methods log cv idm-lane simpl-ar pcdiff pcdiff-guided --checkpoint checkpoints/pcdiff-cpu-v8 \
+      --out runs/wosac/real_val
 
 For each method: `python -m experiments.wosac --method M --out OUT/M.binproto`
 (skipped when that file exists), then `--score` with Waymo's evaluator
 (`make wosac-env`; skipped when OUT/M.wosac.json exists), then one markdown
 row per method in OUT/table.md; OUT/M.export.json holds the export's CPU and
 wall seconds (the whole process, compilation included). `log` is log replay (the logged future, 32
-copies): the reference, never a valid submission. Scoring costs about a minute
+copies): the reference, never a valid submission. `idm` and `idm-lane` are the
+same lane-following IDM (WOSAC may not read the logged route); `pcdiff-guided`
+is ours with `--guidance objective`. Scoring costs about a minute
 per scene and method on 2 cores: --max-scenarios N takes the first N scenes.
 """
 from __future__ import annotations
@@ -21,8 +24,10 @@ import subprocess
 import sys
 import time
 
-LEARNED = ("pcdiff", "pcdiff-noprior", "simpl-ar")
-METHODS = ("log", "cv", "idm") + LEARNED
+LEARNED = ("pcdiff", "pcdiff-noprior", "simpl-ar", "pcdiff-guided")
+METHODS = ("log", "cv", "idm", "idm-lane") + LEARNED
+# table names that are an export method with options (the rest are `--method NAME`)
+VARIANTS = {"pcdiff-guided": ["--method", "pcdiff", "--guidance", "objective"]}
 
 
 def main(argv=None) -> int:
@@ -46,7 +51,7 @@ def main(argv=None) -> int:
   for method in args.methods:
     sub = os.path.join(args.out, f"{method}.binproto")
     if not os.path.exists(sub):
-      cmd = base + ["--method", method, "--out", sub] + limit
+      cmd = base + VARIANTS.get(method, ["--method", method]) + ["--out", sub] + limit
       if method in LEARNED:
         cmd += ["--checkpoint", args.checkpoint] + args.extra.split()
       print("+", " ".join(cmd), flush=True)

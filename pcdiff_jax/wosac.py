@@ -269,12 +269,23 @@ def select_files(scenarios, shard: Optional[tuple[int, int]] = None) -> list[str
   return files[index::count]
 
 
+class Interrupted(Exception):
+  """An export stopped (Ctrl-C, SIGTERM) after `count` scenarios, kept in
+  `path` (a valid submission of those scenarios, named `*.partial`)."""
+
+  def __init__(self, path: str, count: int):
+    super().__init__(f"interrupted after {count} scenarios: they are in {path} (a valid submission of "
+                     "those scenarios; rename it to check or score it)")
+    self.path, self.count = path, count
+
+
 def export(scenarios, out: str, cfg: WosacConfig, metadata: submission.Metadata,
            shard: Optional[tuple[int, int]] = None, max_scenarios: Optional[int] = None,
            progress: bool = True) -> dict:
   """Simulates every scenario of `scenarios` (or the shard's files) and
-  writes the submission file; returns a summary (path, counts, seconds per
-  scenario with the first, compiling one left out). An empty
+  writes the submission file; returns a summary (path, counts, mean and
+  median seconds per scenario with the first, compiling one left out: a
+  later scene in a new object bucket still compiles its own program). An empty
   `metadata.num_model_parameters` is filled with the method's parameter count."""
   files = select_files(scenarios, shard)
   path = submission.shard_path(out, *(shard or (None, None)))
@@ -287,7 +298,8 @@ def export(scenarios, out: str, cfg: WosacConfig, metadata: submission.Metadata,
   cap = cfg.eval.metrics.max_reactive_agents + 1   # the learned agents and the SDC (method or IDM ego)
   items = womd.iterate(files, with_meta=True, history_only=cfg.eval.method != LOG_REPLAY, max_num_objects=cfg.max_objects,
                        max_scenarios=max_scenarios, to_jax=False)
-  with submission.SubmissionWriter(path, metadata) as writer:
+  writer = submission.SubmissionWriter(path, metadata)
+  try:
     for state, meta in tqdm(items, desc=f"wosac {cfg.eval.method}", unit="scenario", disable=not progress):
       t0 = time.perf_counter()
       result = simulator.simulate(state, meta.scenario_id)
@@ -299,12 +311,22 @@ def export(scenarios, out: str, cfg: WosacConfig, metadata: submission.Metadata,
         fallback += max(0, len(result.object_ids) - cap)
     if writer.count == 0:
       raise ValueError(f"no scenario in {files}")
+  except KeyboardInterrupt:
+    if writer.count == 0:
+      writer.abort()
+      raise
+    raise Interrupted(writer.close_partial(), writer.count) from None
+  except BaseException:
+    writer.abort()
+    raise
+  writer.close()
   if lost:
     log.warning("%d sim-agent steps were invalid in the simulation and were held at the last valid pose", lost)
   timed = seconds[1:] or seconds
   return {"path": path, "num_scenarios": writer.count, "sim_agents": agents, "fallback_agents": fallback,
           "lost_steps": lost, "num_rollouts": cfg.num_rollouts,
-          "seconds_per_scenario": float(np.mean(timed)), "first_scenario_seconds": seconds[0],
+          "seconds_per_scenario": float(np.mean(timed)), "median_seconds_per_scenario": float(np.median(timed)),
+          "first_scenario_seconds": seconds[0],
           "metadata": dataclasses.asdict(metadata)}
 
 

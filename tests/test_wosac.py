@@ -321,3 +321,34 @@ def test_the_fallback_is_left_out_only_where_it_drives_nobody(tiny_models):
       final = evaluation.make_rollout_fn(actor, ev)(tiled, rngs, params)
       runs[fallback] = np.asarray(final.sim_trajectory.x)
     assert np.allclose(runs[True], runs[False], atol=1e-3)   # two compiled programs: float rounding
+
+
+def test_an_interrupted_export_keeps_the_scenarios_it_finished(womd_path, tmp_path, monkeypatch, capsys):
+  """Ctrl-C or SIGTERM (`timeout`, a batch system) after the first scenario:
+  exit 130, no final file, and the finished scenario in a valid `.partial`."""
+  from experiments import wosac as cli
+  state, meta = womd.load(womd_path, to_jax=False)
+  scenarios = str(tmp_path / "scenario.tfrecord")
+  womd.write(scenarios, [(state, "first"), (state, "second")], record_format="scenario")
+  simulate, calls = wosac.Simulator.simulate, []
+
+  def stop_at_the_second(self, state, scenario_id):
+    calls.append(scenario_id)
+    if len(calls) == 2:
+      raise KeyboardInterrupt
+    return simulate(self, state, scenario_id)
+
+  monkeypatch.setattr(wosac.Simulator, "simulate", stop_at_the_second)
+  out = str(tmp_path / "sub.binproto")
+  assert cli.main(["--scenarios", scenarios, "--method", "cv", "--out", out, "--num-rollouts", "2",
+                   "--no-progress"]) == 130
+  assert "interrupted after 1 scenarios" in capsys.readouterr().err
+  assert not os.path.exists(out) and not os.path.exists(out + ".tmp")
+  sub = submission.read(out + ".partial")
+  assert [r.scenario_id for r in sub.scenario_rollouts] == ["first"] and sub.unique_method_name == "pcdiff_jax-cv"
+  # Interrupted in the first scenario: the interrupt goes on, and no file is left behind.
+  os.remove(out + ".partial")
+  calls[:] = ["so that the next call is the second"]
+  with pytest.raises(KeyboardInterrupt):
+    cli.main(["--scenarios", scenarios, "--method", "cv", "--out", out, "--num-rollouts", "2", "--no-progress"])
+  assert sorted(os.listdir(tmp_path)) == ["scenario.tfrecord"]

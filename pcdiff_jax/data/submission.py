@@ -111,7 +111,8 @@ class SubmissionWriter:
   """Writes a SimAgentsChallengeSubmission one ScenarioRollouts at a time, so
   a shard never sits whole in memory: the repeated field 1 streamed first, the
   metadata at `close()` (the bytes equal `SerializeToString()` of the whole
-  message). Writes `path + '.tmp'` and renames it on close."""
+  message). Writes `path + '.tmp'` and renames it on close; `close_partial`
+  keeps an interrupted run's scenarios as `path + '.partial'`."""
 
   def __init__(self, path: str, metadata: Metadata):
     self.path, self.metadata, self.count = path, metadata, 0
@@ -124,10 +125,17 @@ class SubmissionWriter:
     self.scenario_ids.append(rollouts.scenario_id)
     self.count += 1
 
-  def close(self) -> None:
+  def close(self, suffix: str = "") -> str:
+    """Finishes the file as `path + suffix`; returns that path."""
     self._file.write(self.metadata.to_proto().SerializeToString())
     self._file.close()
-    os.replace(f"{self.path}.tmp", self.path)
+    os.replace(f"{self.path}.tmp", self.path + suffix)
+    return self.path + suffix
+
+  def close_partial(self) -> str:
+    """Finishes the scenarios written so far as a valid submission of them,
+    `path + '.partial'` (never the final name: it is not the whole shard)."""
+    return self.close(".partial")
 
   def abort(self) -> None:
     self._file.close()
