@@ -15,7 +15,8 @@ a bad submission; add --strict for the metadata the server also requires.
 --score runs Waymo's own metrics (2025 config) in the evaluator's venv (`make
 wosac-env`) on the scenarios' full logs and writes PREFIX.wosac.json and
 PREFIX.wosac.md (--score-out, default: the submission's path without
-.binproto). --method log copies the logged future: a reference to score, never
+.binproto); PREFIX.wosac.jsonl gets each scene as it is scored, so a stopped
+run resumes there. --method log copies the logged future: a reference to score, never
 a valid submission (it reads the future).
 """
 from __future__ import annotations
@@ -162,13 +163,13 @@ def _check(args) -> int:
 
 def _score(args) -> int:
   from pcdiff_jax import wosac_scoring
+  prefix = args.score_out or args.score[0].split(".binproto")[0]
   try:
     result = wosac_scoring.score(args.score, args.scenarios, workers=args.workers,
-                                 progress=not args.no_progress)
+                                 progress=not args.no_progress, journal=f"{prefix}.wosac.jsonl")
   except wosac_scoring.EvaluatorMissing as err:
     print(f"error: {err}", file=sys.stderr)
     return 2
-  prefix = args.score_out or args.score[0].split(".binproto")[0]
   for sid, reason in result["failed"].items():
     print(f"warning: scenario {sid} could not be scored, skipped: {reason.splitlines()[0]}", file=sys.stderr)
   if result["missing"]:

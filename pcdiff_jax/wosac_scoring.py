@@ -104,35 +104,85 @@ def scenario_files(paths, workdir: str) -> list[str]:
   return out
 
 
+def _journal_key(files: Sequence[str]) -> list:
+  """What a journal must match to be reused: each submission's name, size and mtime."""
+  return [[os.path.basename(f), os.path.getsize(f), os.stat(f).st_mtime_ns] for f in files]
+
+
+def _cut_short(path: str) -> bool:
+  with open(path, "rb") as f:
+    f.seek(0, os.SEEK_END)
+    if not f.tell():
+      return False
+    f.seek(-1, os.SEEK_END)
+    return f.read(1) != b"\n"
+
+
+def read_journal(path: Optional[str], files: Sequence[str]) -> dict:
+  """{scenario id: worker line} of the scenes a journal holds scored for
+  these very submission files; {} when there is none or it belongs to other
+  files (changed since, or another submission). Failed scenes are not kept:
+  they are scored again."""
+  if not path or not os.path.exists(path):
+    return {}
+  done = {}
+  with open(path) as f:
+    for number, line in enumerate(f):
+      try:
+        item = json.loads(line)
+      except json.JSONDecodeError:
+        continue                      # a line cut short when the run stopped
+      if number == 0:
+        if item.get("journal_of") != _journal_key(files):
+          return {}
+        continue
+      if "metrics" in item:
+        done[item["scenario_id"]] = item
+  return done
+
+
 def _spawn(python: str, submissions: list[str], scenarios: list[str], index: int, count: int,
-           threads: int) -> subprocess.Popen:
+           threads: int, skip: Optional[str] = None) -> subprocess.Popen:
   env = dict(os.environ, TF_CPP_MIN_LOG_LEVEL="2", TF_NUM_INTRAOP_THREADS=str(threads),
              OMP_NUM_THREADS=str(threads), PYTHONNOUSERSITE="1")
   env.pop("PYTHONPATH", None)   # the worker must see only the evaluator's packages
   if os.path.exists(TCMALLOC):   # ~3x faster scoring, same numbers
     env["LD_PRELOAD"] = ":".join(p for p in (env.get("LD_PRELOAD"), TCMALLOC) if p)
   cmd = [python, WORKER, "--submission", *submissions, "--scenarios", *scenarios,
-         "--index", str(index), "--count", str(count)]
+         "--index", str(index), "--count", str(count)] + (["--skip", skip] if skip else [])
   return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=REPO)
 
 
 def score(submissions: Sequence[str], scenarios, workers: int = 1, progress: bool = True,
-          venv: Optional[str] = None) -> dict:
+          venv: Optional[str] = None, journal: Optional[str] = None) -> dict:
   """Scores the submission(s) on the scenarios with `workers` evaluator
   processes. Returns {"scenarios": {id: {"metrics", "buckets", "seconds",
   "record"}}, "failed": {id: reason}, "missing": [ids without rollouts],
   "unknown": [submitted ids not in the scenarios], "aggregate": ...}.
+  `journal`: a JSONL file that gets each scene's result as it comes, so a
+  stopped run resumes where it was (`read_journal`) and can be followed.
   Raises EvaluatorMissing, or ValueError naming a bad input file."""
   python = evaluator_python(venv)
   where = read_submissions(submissions)
   files = sorted(set(where.values()))
   workers = max(1, int(workers))
+  done = read_journal(journal, files)
+  if journal and not done:
+    os.makedirs(os.path.dirname(os.path.abspath(journal)), exist_ok=True)
+    with open(journal, "w") as f:
+      f.write(json.dumps({"journal_of": _journal_key(files)}) + "\n")
+  log_file = open(journal, "a") if journal else None
+  if log_file and _cut_short(journal):
+    log_file.write("\n")              # end the line a stop cut short
   lines: "queue.Queue" = queue.Queue()
   with tempfile.TemporaryDirectory(prefix="wosac-score-") as tmp:
     inputs = scenario_files(scenarios, tmp)
+    skip = os.path.join(tmp, "skip.txt")
+    with open(skip, "w") as f:
+      f.write("\n".join(sorted(done)))
     threads = max(1, (os.cpu_count() or 1) // workers)
     procs = [_spawn(python, [os.path.abspath(f) for f in files], [os.path.abspath(f) for f in inputs], k,
-                    workers, threads) for k in range(workers)]
+                    workers, threads, skip) for k in range(workers)]
     errors = [[] for _ in procs]
 
     def pump(k, proc):
@@ -144,8 +194,9 @@ def score(submissions: Sequence[str], scenarios, workers: int = 1, progress: boo
     for k, proc in enumerate(procs):
       threading.Thread(target=pump, args=(k, proc), daemon=True).start()
     from tqdm.auto import tqdm
-    bar = tqdm(total=len(where), desc="wosac score", unit="scenario", disable=not progress)
-    scored, failed, missing, seen, open_workers = {}, {}, [], set(), len(procs)
+    bar = tqdm(total=len(where), initial=len(done), desc="wosac score", unit="scenario", disable=not progress)
+    scored = {sid: {k: item[k] for k in ("metrics", "buckets", "seconds", "record")} for sid, item in done.items()}
+    failed, missing, seen, open_workers = {}, [], set(done), len(procs)
     while open_workers:
       k, line = lines.get()
       if line is None:
@@ -158,7 +209,12 @@ def score(submissions: Sequence[str], scenarios, workers: int = 1, progress: boo
       if item.get("done"):
         continue
       sid = item["scenario_id"]
+      if sid in done:
+        continue
       seen.add(sid)
+      if log_file and not item.get("missing"):
+        log_file.write(json.dumps(item) + "\n")
+        log_file.flush()
       if item.get("missing"):
         missing.append(sid)
         continue
@@ -170,6 +226,8 @@ def score(submissions: Sequence[str], scenarios, workers: int = 1, progress: boo
         bar.set_postfix(metametric=f"{np.mean([s['buckets']['realism_meta_metric'] for s in scored.values()]):.3f}")
       bar.update(1)
     bar.close()
+    if log_file:
+      log_file.close()
     for k, proc in enumerate(procs):
       if proc.wait() != 0:
         raise RuntimeError(f"evaluator worker {k} failed (exit {proc.returncode}):\n" + "\n".join(errors[k]))

@@ -49,7 +49,9 @@ def main(argv=None) -> int:
   p.add_argument("--scenarios", nargs="+", required=True)
   p.add_argument("--index", type=int, default=0)
   p.add_argument("--count", type=int, default=1)
+  p.add_argument("--skip", default=None, help="a file of scenario ids already scored (one per line)")
   args = p.parse_args(argv)
+  skip = set(open(args.skip).read().split()) if args.skip else set()
 
   import tensorflow as tf
   tf.config.threading.set_inter_op_parallelism_threads(1)
@@ -71,6 +73,8 @@ def main(argv=None) -> int:
         continue
       scenario = scenario_pb2.Scenario.FromString(raw)
       sid = scenario.scenario_id
+      if sid in skip:
+        continue
       where = f"{path}#{record}"
       if sid not in rollouts:
         print(json.dumps({"scenario_id": sid, "record": where, "missing": True}), flush=True)

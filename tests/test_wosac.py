@@ -249,6 +249,32 @@ def test_score_collects_the_workers_aggregates_and_writes_tables(womd_path, tmp_
   assert saved["aggregate"] == agg and (tmp_path / "sub.wosac.md").read_text() == table
 
 
+def test_a_stopped_scoring_resumes_from_its_journal(womd_path, tmp_path):
+  """Each scored scene goes to the journal as it comes; a second run takes
+  the journal's scenes as they are (the workers skip them) and scores the
+  failed ones again; a journal of other submission bytes is not used."""
+  from pcdiff_jax import wosac_scoring
+  venv = _fake_evaluator(tmp_path)
+  sub = _submission(tmp_path, ["s0", "s1", "bad", "zz"])
+  journal = str(tmp_path / "out" / "sub.wosac.jsonl")
+  wosac_scoring.score([sub], womd_path, workers=2, progress=False, venv=venv, journal=journal)
+  lines = [json.loads(line) for line in open(journal)]
+  assert "journal_of" in lines[0] and sorted(item["scenario_id"] for item in lines[1:]) == ["bad", "s0", "s1"]
+  # As if s0 had been scored 0.9 before a stop that cut the last line short.
+  marked = [json.dumps(item).replace('"realism_meta_metric": 0.5', '"realism_meta_metric": 0.9')
+            for item in lines if item.get("scenario_id") != "s1"]
+  with open(journal, "w") as f:
+    f.write("\n".join(marked) + '\n{"scenario_id": "s1", "rec')
+  result = wosac_scoring.score([sub], womd_path, workers=2, progress=False, venv=venv, journal=journal)
+  assert result["scenarios"]["s0"]["buckets"]["realism_meta_metric"] == 0.9     # kept, not scored again
+  assert sorted(result["scenarios"]) == ["s0", "s1"] and list(result["failed"]) == ["bad"]
+  assert wosac_scoring.read_journal(journal, [sub]).keys() == {"s0", "s1"}
+  _submission(tmp_path, ["s0", "s1", "bad", "zz", "new"])                      # other bytes: a fresh start
+  assert wosac_scoring.read_journal(journal, [sub]) == {}
+  result = wosac_scoring.score([sub], womd_path, workers=2, progress=False, venv=venv, journal=journal)
+  assert result["scenarios"]["s0"]["buckets"]["realism_meta_metric"] == 0.5
+
+
 def test_score_refuses_bad_inputs(womd_path, tmp_path, monkeypatch, capsys):
   from experiments import wosac as cli
   sub = _submission(tmp_path, ["s0"])
