@@ -230,7 +230,11 @@ def score(submissions: Sequence[str], scenarios, workers: int = 1, progress: boo
       log_file.close()
     for k, proc in enumerate(procs):
       if proc.wait() != 0:
-        raise RuntimeError(f"evaluator worker {k} failed (exit {proc.returncode}):\n" + "\n".join(errors[k]))
+        killed = " (killed: out of memory? try fewer --workers)" if proc.returncode == -9 else ""
+        kept = (f"; the {len(scored)} scenes scored are kept in {journal}: the same command resumes there"
+                if journal else "")
+        raise RuntimeError(f"evaluator worker {k} failed (exit {proc.returncode}){killed}{kept}:\n"
+                           + "\n".join(errors[k]))
   unknown = sorted(set(where) - seen)
   return {"scenarios": scored, "failed": failed, "missing": sorted(missing), "unknown": unknown,
           "submissions": files, "aggregate": aggregate(scored)}

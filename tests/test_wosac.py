@@ -275,6 +275,21 @@ def test_a_stopped_scoring_resumes_from_its_journal(womd_path, tmp_path):
   assert result["scenarios"]["s0"]["buckets"]["realism_meta_metric"] == 0.5
 
 
+def test_a_killed_worker_is_an_error_that_keeps_the_scored_scenes(womd_path, tmp_path, monkeypatch, capsys):
+  from experiments import wosac as cli
+  venv = _fake_evaluator(tmp_path)
+  script = (tmp_path / "fake-venv" / "bin" / "python")
+  script.write_text(FAKE_WORKER.replace("line s1 0.7", "line s1 0.7; kill -9 $$"))
+  sub = _submission(tmp_path, ["s0", "s1", "bad", "zz"])
+  monkeypatch.setenv("WOSAC_VENV", venv)
+  assert cli.main(["--score", sub, "--scenarios", womd_path, "--no-progress", "--workers", "2"]) == 2
+  err = capsys.readouterr().err
+  assert "killed: out of memory? try fewer --workers" in err and "sub.wosac.jsonl" in err
+  assert "Traceback" not in err and not (tmp_path / "sub.wosac.json").exists()
+  from pcdiff_jax import wosac_scoring
+  assert set(wosac_scoring.read_journal(str(tmp_path / "sub.wosac.jsonl"), [sub])) == {"s0", "s1"}
+
+
 def test_score_refuses_bad_inputs(womd_path, tmp_path, monkeypatch, capsys):
   from experiments import wosac as cli
   sub = _submission(tmp_path, ["s0"])
