@@ -11,8 +11,9 @@ row per method in OUT/table.md; OUT/M.export.json holds the export's CPU and
 wall seconds (the whole process, compilation included). `log` is log replay (the logged future, 32
 copies): the reference, never a valid submission. `idm` and `idm-lane` are the
 same lane-following IDM (WOSAC may not read the logged route); `pcdiff-guided`
-is ours with `--guidance objective`. Scoring costs about a minute
-per scene and method on 2 cores: --max-scenarios N takes the first N scenes.
+is ours with `--guidance objective`. Scoring costs 2-4 CPU-minutes per real
+val scene and method, and up to 12.5 GB per worker (docs/WOSAC.md); it resumes
+from its journal when run again. --max-scenarios N takes the first N scenes.
 """
 from __future__ import annotations
 
