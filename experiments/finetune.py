@@ -80,6 +80,16 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="condition the diffusion policy on DIR's SIMPL-AR encoder (simpl_ar/, else encoder/) "
                       "instead of --from's; the rounds re-train the denoiser on it")
   p.add_argument("--data", required=True, nargs="+", help="training TFRecord file(s) or glob(s)")
+  p.add_argument("--real-data", nargs="+", default=None, metavar="FILE",
+                 help="real WOMD scenes: their logged examples make --real-share of each batch's logged "
+                      "part, and the rounds roll out on them (from real states) instead of --data")
+  p.add_argument("--real-share", type=float, default=0.5, help="share of the logged examples from --real-data")
+  p.add_argument("--target-fit", type=float, default=None, metavar="SIGMA",
+                 help="m: targets are latents fitted to the logged positions (latent.fit_to_path; "
+                      "1 for real logs); default: the model's (the projection)")
+  p.add_argument("--target-max-rms", type=float, default=None, metavar="R",
+                 help="with --target-fit: agents whose fitted latent has a whitened RMS above R are not "
+                      "trained on (3 for real logs); default: the model's (no limit)")
   p.add_argument("--workdir", required=True, type=_args.output_dir)
   p.add_argument("--cache-dir", default=None, type=_args.output_dir, help="logged-example cache (default WORKDIR/cache)")
   p.add_argument("--policy", choices=("pcdiff", "simpl-ar"), default="pcdiff",
@@ -138,6 +148,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.error("--batch-size must be >= 2")
   if not 0.0 < args.mix < 1.0:
     p.error("--mix must be in (0, 1)")
+  if not 0.0 < args.real_share <= 1.0:
+    p.error("--real-share must be in (0, 1]")
+  if args.target_fit is not None and args.target_fit < 0:
+    p.error("--target-fit must be >= 0")
+  if args.target_max_rms is not None and args.target_max_rms < 0:
+    p.error("--target-max-rms must be >= 0")
   if args.learning_rate <= 0 or args.encoder_learning_rate <= 0:
     p.error("learning rates must be > 0")
   if args.first_scene < 0:
@@ -255,6 +271,12 @@ def main(argv=None) -> int:
         model_cfg = dataclasses.replace(model_cfg, diffusion=dataclasses.replace(model_cfg.diffusion,
                                                                                  denoiser=den_cfg))
         models = models.replace(denoiser=denoiser.with_new_inputs(models.denoiser, den_cfg))
+    if args.target_fit is not None and not simpl:
+      model_cfg = dataclasses.replace(model_cfg, diffusion=dataclasses.replace(
+          model_cfg.diffusion, target_fit_sigma=args.target_fit))
+    if args.target_max_rms is not None and not simpl:
+      model_cfg = dataclasses.replace(model_cfg, diffusion=dataclasses.replace(
+          model_cfg.diffusion, target_max_rms=args.target_max_rms))
     if args.prior_spread is not None and not simpl:
       model_cfg = dataclasses.replace(model_cfg, diffusion=dataclasses.replace(
           model_cfg.diffusion, prior_spread=args.prior_spread))
@@ -282,6 +304,10 @@ def main(argv=None) -> int:
     cache = args.cache_dir or os.path.join(args.workdir, "cache")
     spec = encoder_stage.cache_spec(model_cfg)
     logged, _ = data_lib.load_or_build(files, spec, cache, "train", progress=not args.no_progress)
+    real, round_files = None, files
+    if args.real_data:
+      round_files = womd.expand_paths(args.real_data)
+      real, _ = data_lib.load_or_build(round_files, spec, cache, "real", progress=not args.no_progress)
     os.makedirs(args.workdir, exist_ok=True)
     history, gathered = [], [_read_extra(path, logged) for path in _expand(args.extra_on_policy)]
     for r in range(args.rounds):
@@ -293,7 +319,7 @@ def main(argv=None) -> int:
         on_policy, info = data_lib.read_examples(path)
       else:
         on_policy, info = closed_loop.collect(
-            models, run_cfg, _round_policy(args.round_policy), files, ocfg,
+            models, run_cfg, _round_policy(args.round_policy), round_files, ocfg,
             first=args.first_scene + r * args.scenes,
             count=args.scenes, batch_size=args.rollout_batch, seed=args.seed + r,
             progress=not args.no_progress, teacher=teacher, actor=actor)
@@ -312,12 +338,14 @@ def main(argv=None) -> int:
                                   seed=args.seed, batch_size=args.batch_size or model_cfg.encoder_train.batch_size)
         enc_state, _ = closed_loop.finetune_encoder(models if simpl else models.encoder, model_cfg, logged,
                                                     on_policy, round_dir, etc, ocfg,
-                                                    progress=not args.no_progress)
+                                                    progress=not args.no_progress, real=real,
+                                                    real_share=args.real_share)
         state = enc_state
         models = enc_state.params if simpl else models.replace(encoder=enc_state.params)
       if not simpl:
         state, _ = closed_loop.finetune(models, model_cfg, logged, on_policy, round_dir, tc, ocfg,
-                                        progress=not args.no_progress)
+                                        progress=not args.no_progress, real=real,
+                                        real_share=args.real_share)
         models, _ = diffusion_stage.load(round_dir)
       history.append({"round": r, "collect": info, "finetune_minutes": (time.time() - t1) / 60,
                       "step": int(state.step)})

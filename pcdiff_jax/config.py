@@ -123,6 +123,12 @@ class DiffusionConfig:
   state_loss_weight: float = 0.5
   pca_fit_scenes: int = 500        # training scenes whose futures fit the PCA
   pca_proposal_weight: float = 0.0  # share of the proposals in the PCA fit (models v2: 0.5)
+  # Stage-2 targets: 0 takes the projection of the inverse actions; sigma > 0 (m) the latent
+  # fitted to the future's positions with that tolerance (`latent.fit_to_path`; real logs).
+  target_fit_sigma: float = 0.0
+  # With a fit: an agent whose fitted latent has a whitened RMS above this is not trained on
+  # (a box heading unrelated to the motion makes a path the latent cannot hold); 0: no limit.
+  target_max_rms: float = 0.0
   denoiser: DenoiserConfig = DenoiserConfig()
 
 

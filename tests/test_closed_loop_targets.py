@@ -107,6 +107,9 @@ def test_mixed_batches_hold_the_asked_share_of_on_policy_examples():
   assert logged["v"].shape[0] == 6 and visited["v"].shape[0] == 2 and np.all(visited["v"] >= 100)
   again = closed_loop.mixed_batch_at(ex, on, 3, 8, 0.25, 0)
   np.testing.assert_array_equal(again[1]["v"], visited["v"])
+  real = jax.tree_util.tree_map(lambda a: 1000 + a, ex)
+  logged, visited = closed_loop.mixed_batch_at(ex, on, 3, 8, 0.25, 0, real=real, real_share=0.5)
+  assert visited["v"].shape[0] == 2 and np.sum(logged["v"] >= 1000) == 3 and np.sum(logged["v"] < 100) == 3
 
 
 def _with_left_curve(state, start=(32.0, 2.0), radius=60.0):

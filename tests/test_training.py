@@ -156,3 +156,34 @@ def test_resume_accepts_a_run_saved_before_a_new_config_field(tmp_path):
   with pytest.raises(trainer.CheckpointMismatch, match="encoder.lane_inputs"):
     ckpt.restore_or_keep(state, config_lib.to_dict(changed))
   ckpt.close()
+
+
+def test_fitted_targets_leave_out_a_path_the_latent_cannot_hold(scene_example):
+  """With `target_fit_sigma`, the targets follow the logged positions; an
+  agent whose log runs sideways to its box (a heading unrelated to the motion)
+  gets a fit far outside the latent's spread and, with `target_max_rms`, is
+  not trained on, while the agents that drive along their heading are."""
+  import dataclasses
+  from pcdiff_jax.model import encoder, latent
+  from pcdiff_jax.training import diffusion_stage
+  # A latent with a spread: the scene's logged actions and smooth variations of them.
+  actions, _ = diffusion_stage.logged_actions(scene_example, CFG)
+  horizon = actions.shape[-2]
+  wave = np.sin(np.pi * np.linspace(0, 1, horizon)[:, None] * np.arange(1, 5))          # (T, 4)
+  coef = np.random.default_rng(0).normal(size=(300, 2, 4)) * np.array([1.0, 0.05])[:, None]
+  stats = latent.fit(np.concatenate([np.asarray(actions[0, :1]), np.einsum("nck,tk->ntc", coef, wave)]), 6)
+  tg = scene_example.targets
+  sideways = tg.future_xy[0, 1, :, ::-1]                       # along +y, box heading +x
+  batch = scene_example.replace(targets=tg.replace(future_xy=tg.future_xy.at[0, 1].set(sideways)))
+  fit = dataclasses.replace(CFG, diffusion=dataclasses.replace(CFG.diffusion, target_fit_sigma=1.0,
+                                                               target_max_rms=3.0))
+  speed = planner.agent_speed(batch.feats)
+  targets = jax.jit(lambda b, c: diffusion_stage.latent_targets(b, stats, speed, c), static_argnums=1)
+  (y_proj, full_proj), (y_fit, full_fit) = targets(batch, CFG), targets(batch, fit)
+  rms = np.asarray(diffusion_stage.whitened_rms(y_fit, stats))[0]
+  assert bool(full_proj[0, 1]) and not bool(full_fit[0, 1]) and rms[1] > 3.0
+  kept = np.asarray(full_proj[0]) & (np.arange(full_proj.shape[1]) != 1)
+  assert kept.sum() >= 2 and np.array_equal(np.asarray(full_fit[0]), kept)
+  err = lambda y: np.asarray(jnp.linalg.norm(latent.rollout(y, speed, stats, CFG.kinematics)[..., :2]
+                                             - batch.targets.future_xy, axis=-1).mean(-1))[0]
+  assert np.all(err(y_fit)[kept] <= err(y_proj)[kept] + 0.05)

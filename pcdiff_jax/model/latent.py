@@ -132,6 +132,44 @@ def rollout(latent: Array, current_speed: Array, stats: LatentStats,
   return dynamics.rollout(initial_states(speed), actions, cfg.dt)
 
 
+def prior_variance(stats: LatentStats) -> Array:
+  """(d,) variance of each latent coordinate over the fit's samples: the
+  eigenvalues of the normalised covariance (`explained` x D_u)."""
+  return stats.explained * stats.components.shape[0]
+
+
+def fit_to_path(y: Array, future_xy: Array, future_valid: Array, current_speed: Array,
+                stats: LatentStats, cfg: KinematicsConfig = KinematicsConfig(), sigma: float = 1.0,
+                iterations: int = 100, learning_rate: float = 0.15) -> Array:
+  """The latent whose rollout follows a path, kept in distribution (MAP).
+
+  Minimises sum_t |p_t(y) - xy_t|^2 / sigma^2 + sum_i y_i^2 / var_i over the
+  valid steps, by `iterations` Adam steps from y (e.g. `encode` of the
+  inverse actions). Real logs need it: second differences of noisy positions
+  give accelerations no driver made, and their projection lies far outside
+  the latent's training distribution and still misses the path (RESULTS,
+  "Latent targets of real logs").
+  Args: y (..., d), future_xy (..., T, 2) agent frame, future_valid (..., T),
+    current_speed (...). Returns (..., d).
+  """
+  import optax   # a training dependency; inference never fits
+  inv_var = 1.0 / jnp.maximum(prior_variance(stats), 1e-6)
+  speed = jnp.broadcast_to(current_speed, y.shape[:-1])
+  opt = optax.adam(learning_rate)
+
+  def loss(y):
+    err = jnp.sum((rollout(y, speed, stats, cfg)[..., :2] - future_xy) ** 2, -1)
+    return jnp.sum(jnp.where(future_valid, err, 0.0)) / sigma ** 2 + jnp.sum(y ** 2 * inv_var)
+
+  def step(carry, _):
+    y, opt_state = carry
+    update, opt_state = opt.update(jax.grad(loss)(y), opt_state, y)
+    return (y + update, opt_state), None
+
+  (y, _), _ = jax.lax.scan(step, (y, opt.init(y)), None, iterations)
+  return y
+
+
 def fit(actions: np.ndarray, dim: int, weights: Optional[np.ndarray] = None) -> LatentStats:
   """Fits the normalisation and the top-`dim` components to samples (N, T, 2).
 

@@ -308,14 +308,21 @@ def collect(models: Models, model_cfg: Config, policy_cfg, paths: Sequence[str],
 
 
 def mixed_batch_at(log_examples: Example, on_policy: Example, step: int, batch_size: int,
-                   mix: float, seed: int) -> tuple[Example, Example]:
+                   mix: float, seed: int, real: Optional[Example] = None,
+                   real_share: float = 0.0) -> tuple[Example, Example]:
   """(log batch, on-policy batch) of global `step`: round(mix * batch_size)
-  on-policy examples and the rest logged ones; a pure function of (seed, step)."""
+  on-policy examples and the rest logged ones, of which round(real_share *
+  their number) come from `real` (logged real scenes) when given; a pure
+  function of (seed, step)."""
   n_on = int(round(mix * batch_size))
   n_log = batch_size - n_on
+  n_real = int(round(real_share * n_log)) if real is not None else 0
   take = lambda ex, n, salt: data_lib.batch_at(ex, step, n, seed + salt) if n else \
       jax.tree_util.tree_map(lambda a: a[:0], ex)
-  return take(log_examples, n_log, 0), take(on_policy, n_on, 7919)
+  logged = take(log_examples, n_log - n_real, 0)
+  if n_real:
+    logged = jax.tree_util.tree_map(lambda a, b: np.concatenate([a, b]), logged, take(real, n_real, 104729))
+  return logged, take(on_policy, n_on, 7919)
 
 
 def _concat(a: Example, b: Example) -> Example:
@@ -324,9 +331,10 @@ def _concat(a: Example, b: Example) -> Example:
 
 def finetune_encoder(encoder_params, model_cfg: Config, log_examples: Example, on_policy: Example,
                      workdir: str, train_cfg: TrainConfig, cfg: OnPolicyConfig,
-                     max_minutes: Optional[float] = None, progress: bool = True):
+                     max_minutes: Optional[float] = None, progress: bool = True,
+                     real: Optional[Example] = None, real_share: float = 0.0):
   """Fine-tunes the encoder in WORKDIR/encoder (resumable) on mixed batches
-  with stage 1's loss. Returns (state, {})."""
+  (`mixed_batch_at`) with stage 1's loss. Returns (state, {})."""
   from pcdiff_jax import config as config_lib
   from pcdiff_jax.model import encoder
   from pcdiff_jax.training import encoder_loss, encoder_stage
@@ -343,7 +351,7 @@ def finetune_encoder(encoder_params, model_cfg: Config, log_examples: Example, o
     return encoder_loss.proposal_loss(out, both.targets, cls_weight=train_cfg.cls_weight)
   step_fn = trainer.make_train_step(loss_fn, tx)
   batch_at = lambda step: mixed_batch_at(log_examples, on_policy, step, train_cfg.batch_size,
-                                         cfg.mix, train_cfg.seed)
+                                         cfg.mix, train_cfg.seed, real, real_share)
   return trainer.fit(state, step_fn, batch_at, None, train_cfg,
                      os.path.join(workdir, encoder_stage.STAGE_DIR), config_lib.to_dict(cfg_ft),
                      desc="on-policy encoder", max_minutes=max_minutes, progress=progress,
@@ -354,8 +362,9 @@ def finetune_encoder(encoder_params, model_cfg: Config, log_examples: Example, o
 def finetune(models: Models, model_cfg: Config, log_examples: Example, on_policy: Example,
              workdir: str, train_cfg: TrainConfig, cfg: OnPolicyConfig,
              val_examples: Optional[Example] = None, max_minutes: Optional[float] = None,
-             progress: bool = True):
-  """Fine-tunes the denoiser in WORKDIR/diffusion (resumable) from `models`.
+             progress: bool = True, real: Optional[Example] = None, real_share: float = 0.0):
+  """Fine-tunes the denoiser in WORKDIR/diffusion (resumable) from `models`
+  on mixed batches (`mixed_batch_at`: logged, logged real, on-policy).
 
   The latent statistics and the encoder stay frozen; the saved checkpoint
   has stage 2's layout (`diffusion_stage.load(workdir)` reads it). Returns
@@ -365,6 +374,8 @@ def finetune(models: Models, model_cfg: Config, log_examples: Example, on_policy
   cfg_ft = dataclasses.replace(model_cfg, diffusion_train=train_cfg)
   log_examples = diffusion_stage.full_future_examples(log_examples)
   on_policy = diffusion_stage.full_future_examples(on_policy)
+  if real is not None:
+    real = diffusion_stage.full_future_examples(real)
   extra = {"encoder": models.encoder, "stats": models.stats}
   tx = trainer.make_optimizer(train_cfg)
   state = trainer.create_state(models.denoiser, tx, train_cfg.seed, extra=extra)
@@ -381,7 +392,7 @@ def finetune(models: Models, model_cfg: Config, log_examples: Example, on_policy
                                        train_cfg.eval_batch_size)
     evaluate = lambda st: ev(st.params, st.extra)
   batch_at = lambda step: mixed_batch_at(log_examples, on_policy, step, train_cfg.batch_size,
-                                         cfg.mix, train_cfg.seed)
+                                         cfg.mix, train_cfg.seed, real, real_share)
   return trainer.fit(state, step_fn, batch_at, evaluate, train_cfg, os.path.join(workdir, "diffusion"),
                      config_lib.to_dict(cfg_ft), desc="on-policy fine-tune", max_minutes=max_minutes,
                      progress=progress, schedule=trainer.learning_rate_schedule(train_cfg),

@@ -58,6 +58,31 @@ def logged_actions(batch: Example, cfg: Config) -> tuple[jax.Array, jax.Array]:
   return actions, full
 
 
+def latent_targets(batch: Example, stats: latent.LatentStats, speed: jax.Array,
+                   cfg: Config) -> tuple[jax.Array, jax.Array]:
+  """Latent targets of the logged futures (..., A, d) and which agents are
+  trained on (..., A: fully valid). The projection of the inverse actions, or
+  with `diffusion.target_fit_sigma` > 0 the latent fitted to the logged
+  positions from there (`latent.fit_to_path`), then without the agents whose
+  fit stays out of distribution (`diffusion.target_max_rms`; RESULTS, "Latent
+  targets of real logs")."""
+  actions, full = logged_actions(batch, cfg)
+  y0 = latent.encode(actions, stats)
+  d = cfg.diffusion
+  if d.target_fit_sigma > 0:
+    t = batch.targets
+    y0 = jax.lax.stop_gradient(latent.fit_to_path(y0, t.future_xy, t.future_valid, speed, stats,
+                                                  cfg.kinematics, d.target_fit_sigma))
+    if d.target_max_rms > 0:
+      full = full & (whitened_rms(y0, stats) <= d.target_max_rms)
+  return y0, full
+
+
+def whitened_rms(y: jax.Array, stats: latent.LatentStats) -> jax.Array:
+  """(..., d) -> (...): RMS of a latent in units of the training spread of each component."""
+  return jnp.sqrt(jnp.mean(y ** 2 / latent.prior_variance(stats), -1))
+
+
 # ----------------------------------------------------------------------------
 # Latent fit.
 
@@ -122,8 +147,8 @@ def diffusion_loss(params, extra, batch: Example, rng, cfg: Config):
   """(loss, metrics) for a batch (B, ...). extra = {"encoder", "stats"}."""
   stats = extra["stats"]
   cond = planner.condition(extra["encoder"], stats, batch.feats, cfg)
-  actions, full = logged_actions(batch, cfg)
-  y0 = jnp.where(full[..., None], latent.encode(actions, stats), cond.mu)
+  y0, full = latent_targets(batch, stats, cond.speed, cfg)
+  y0 = jnp.where(full[..., None], y0, cond.mu)
   k_noise, k_drop = jax.random.split(rng)
   pred, target, y0_hat = _noised(params, cond, y0, k_noise, cfg, dropout_rng=k_drop)
   n = jnp.maximum(jnp.sum(full), 1)
