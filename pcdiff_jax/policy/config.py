@@ -56,8 +56,7 @@ class PolicyConfig:
       (parked cars stay parked; a car queued at a green light is let go); (0, 0) is off.
     max_curvature: 1/m: a vehicle or cyclist turns at most this much per metre travelled, so
       a parked car does not spin in place; 0 is off. Both chosen on the real val scenes
-      (docs/RESULTS.md, "Table I (real WOMD val)" and "Ablation: fine-tuning on real scenes,
-      and the still gate").
+      (docs/RESULTS.md, "Table I (real WOMD val)"; CHANGELOG.md, v8 real-traffic defaults).
 
   Options that were measured without gain are gone; CHANGELOG.md keeps their results.
   """
