@@ -32,6 +32,15 @@ encoder's tokens and proposals, and WORKDIR/encoder is that encoder (v8):
   python -m experiments.finetune --from checkpoints/pcdiff-cpu-v7 --encoder-from checkpoints/pcdiff-cpu-v7 \
       --data 'data/synth20/train-*' --workdir runs/l4 --rounds 2 --scenes 300 --first-scene 5200 --steps 1000
 
+--real-data FILE puts real WOMD scenes in the loop: their logged examples make
+--real-share of each batch's logged part and the rounds roll out from their
+states; --target-fit 1 --target-max-rms 3 fits the latent targets to the
+noisy logged positions (docs/RESULTS.md, "Ablation: fine-tuning on real scenes"):
+
+  python -m experiments.finetune --from checkpoints/pcdiff-cpu-v8 --data 'data/synth600/train-*' \
+      --real-data ../shared/data/womd_real/train.scenario.tfrecord --target-fit 1 --target-max-rms 3 \
+      --round-policy defaults --mix 0.25 --rounds 1 --scenes 80 --steps 300 --learning-rate 5e-5 --workdir runs/r3
+
 --round-policy chooses what the rounds roll out: v8 (the default) is what every
 round of v3-v8 rolled out, pinned; defaults is today's `PolicyConfig` with one
 sample (v9's four rounds, the first line above, on one GPU).
