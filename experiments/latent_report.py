@@ -65,7 +65,7 @@ def target_report(args) -> int:
   try:
     models, cfg = shipped.pretrained(path=args.checkpoint)
     spec = dataclasses.replace(encoder_stage.cache_spec(cfg), current_steps=(10,))
-    val, info = data_lib.load_or_build(args.val_data, spec, os.path.join(args.out, "cache"), "val")
+    val, _ = data_lib.load_or_build(args.val_data, spec, os.path.join(args.out, "cache"), "val")
   except (FileNotFoundError, ValueError) as err:
     print(f"error: {err}", file=sys.stderr)
     return 2
@@ -76,7 +76,7 @@ def target_report(args) -> int:
         cfg, diffusion=dataclasses.replace(cfg.diffusion, target_fit_sigma=sigma)))
     t = batch.targets
     dist = jnp.linalg.norm(latent.rollout(y, speed, models.stats, cfg.kinematics)[..., :2] - t.future_xy, axis=-1)
-    rms = diffusion_stage.whitened_rms(y, models.stats)
+    rms = latent.whitened_rms(y, models.stats)
     path = jnp.sum(jnp.linalg.norm(jnp.diff(t.future_xy, axis=-2), axis=-1), -1)
     out = []
     for group in (full & (path > 1), full & (path <= 1)):

@@ -115,6 +115,16 @@ def test_every_cli_has_help_and_rejects_a_bad_output_path(name, tmp_path, capsys
   assert a_file.read_text() == "{}"   # nothing already written is touched
 
 
+def test_latent_report_needs_a_workdir_or_a_checkpoint(tmp_path, capsys):
+  from experiments import latent_report
+  with pytest.raises(SystemExit) as err:
+    latent_report.main(["--val-data", "x.tfrecord", "--out", str(tmp_path / "o")])
+  assert err.value.code == 2 and "--checkpoint" in capsys.readouterr().err
+  assert latent_report.main(["--checkpoint", str(tmp_path / "none"), "--val-data", "x.tfrecord",
+                             "--out", str(tmp_path / "o")]) == 2
+  assert str(tmp_path / "none") in capsys.readouterr().err
+
+
 def test_family_table_weights_scenarios_by_their_agents(tmp_path, capsys):
   from experiments import family_table
   rows = [{"scenario_id": "syn-merge-0-1-0000000", "collision_rate": 0.5, "offroad_rate": 0.0, "num_evaluated": 2},

@@ -81,7 +81,7 @@ def test_a_path_fit_follows_a_jittery_path_with_an_in_distribution_latent():
   projected = L.encode(L.actions_from_positions(xy, v0), stats)
   fitted = L.fit_to_path(projected, xy, jnp.ones(xy.shape[:-1], bool), v0, stats, sigma=0.3)
   err = lambda y: float(jnp.mean(jnp.linalg.norm(L.rollout(y, v0, stats)[..., :2] - clean, axis=-1)))
-  whitened = lambda y: float(jnp.sqrt(jnp.mean((y / scale) ** 2)))
+  whitened = lambda y: float(jnp.mean(L.whitened_rms(y, stats)))
   assert err(fitted) < 0.2 * err(projected), (err(fitted), err(projected))
   assert whitened(fitted - y_true) < whitened(projected - y_true)
   assert whitened(fitted) < whitened(projected)

@@ -180,7 +180,7 @@ def test_fitted_targets_leave_out_a_path_the_latent_cannot_hold(scene_example):
   speed = planner.agent_speed(batch.feats)
   targets = jax.jit(lambda b, c: diffusion_stage.latent_targets(b, stats, speed, c), static_argnums=1)
   (y_proj, full_proj), (y_fit, full_fit) = targets(batch, CFG), targets(batch, fit)
-  rms = np.asarray(diffusion_stage.whitened_rms(y_fit, stats))[0]
+  rms = np.asarray(latent.whitened_rms(y_fit, stats))[0]
   assert bool(full_proj[0, 1]) and not bool(full_fit[0, 1]) and rms[1] > 3.0
   kept = np.asarray(full_proj[0]) & (np.arange(full_proj.shape[1]) != 1)
   assert kept.sum() >= 2 and np.array_equal(np.asarray(full_fit[0]), kept)

@@ -138,6 +138,11 @@ def prior_variance(stats: LatentStats) -> Array:
   return stats.explained * stats.components.shape[0]
 
 
+def whitened_rms(y: Array, stats: LatentStats) -> Array:
+  """(..., d) -> (...): RMS of a latent in units of each component's training spread."""
+  return jnp.sqrt(jnp.mean(y ** 2 / prior_variance(stats), -1))
+
+
 def fit_to_path(y: Array, future_xy: Array, future_valid: Array, current_speed: Array,
                 stats: LatentStats, cfg: KinematicsConfig = KinematicsConfig(), sigma: float = 1.0,
                 iterations: int = 100, learning_rate: float = 0.15) -> Array:

@@ -74,13 +74,8 @@ def latent_targets(batch: Example, stats: latent.LatentStats, speed: jax.Array,
     y0 = jax.lax.stop_gradient(latent.fit_to_path(y0, t.future_xy, t.future_valid, speed, stats,
                                                   cfg.kinematics, d.target_fit_sigma))
     if d.target_max_rms > 0:
-      full = full & (whitened_rms(y0, stats) <= d.target_max_rms)
+      full = full & (latent.whitened_rms(y0, stats) <= d.target_max_rms)
   return y0, full
-
-
-def whitened_rms(y: jax.Array, stats: latent.LatentStats) -> jax.Array:
-  """(..., d) -> (...): RMS of a latent in units of the training spread of each component."""
-  return jnp.sqrt(jnp.mean(y ** 2 / latent.prior_variance(stats), -1))
 
 
 # ----------------------------------------------------------------------------
