@@ -6,6 +6,14 @@ import argparse
 import os
 
 
+def policy_item(text: str) -> tuple[str, object]:
+  """'field=value' -> (field, value); a comma-separated value is a tuple."""
+  name, sep, value = text.partition("=")
+  if not sep or not name:
+    raise argparse.ArgumentTypeError(f"expected FIELD=VALUE, got {text!r}")
+  return name, tuple(value.split(",")) if "," in value else value
+
+
 def shipped_model_above(path: str):
   """The shipped model folder (one with a MODEL_CARD.md) that `path` is or lies in, else None."""
   folder = os.path.abspath(path)

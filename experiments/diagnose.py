@@ -45,6 +45,7 @@ import numpy as np
 
 from experiments import _args
 from pcdiff_jax import evaluation, metrics as metrics_lib, policy
+from pcdiff_jax.config import get_config
 from pcdiff_jax.data import womd
 from pcdiff_jax.model import encoder, features as features_lib, latent, planner
 from pcdiff_jax.sim import dynamics, env
@@ -150,6 +151,7 @@ def drift(args, models, cfg, batch, num) -> dict:
   pcfg = policy.PolicyConfig(replan_every=args.replan_every, ddim_steps=args.ddim_steps,
                              consistent_noise=args.consistent_noise, execute=args.execute,
                              warm_start=args.warm_start)
+  pcfg = policy.with_overrides(pcfg, args.policy)
   ecfg = evaluation.EvalConfig(method=args.method, checkpoint=args.checkpoint, policy=pcfg)
   actor, params = evaluation.make_actor(ecfg)
   rngs = jax.random.split(jax.random.PRNGKey(args.seed), num)
@@ -289,6 +291,8 @@ def main(argv=None) -> None:
   d.add_argument("--execute", default="actions", choices=["actions", "track"])
   d.add_argument("--warm-start", action=argparse.BooleanOptionalAction, default=True,
                  help="pcdiff: warm-started replanning (default) or cold plans")
+  d.add_argument("--policy", nargs="+", default=[], metavar="FIELD=VALUE", type=_args.policy_item,
+                 help="pcdiff: policy fields over the flags above, as experiments.rollout takes them")
   f = sub.add_parser("first-action", help="first planned action against the log's")
   f.add_argument("--ddim-steps", type=int, default=5)
   f.add_argument("--no-prior", dest="prior", action="store_false")
@@ -301,6 +305,11 @@ def main(argv=None) -> None:
     p.error("--num-scenes must be >= 1")
   if args.section == "parked" and args.samples < 1:
     p.error("--samples must be >= 1")
+  if args.section == "drift":
+    try:
+      policy.validate(get_config("cpu"), policy.with_overrides(policy.PolicyConfig(), args.policy))
+    except (ValueError, TypeError) as err:
+      p.error(f"--policy: {err}")
   if not os.path.exists(args.scenarios):
     p.error(f"--scenarios {args.scenarios}: no such file")
 

@@ -26,14 +26,6 @@ from pcdiff_jax.model.guidance import MODES as GUIDANCE_MODES
 from pcdiff_jax.model.guidance import GuidanceConfig
 
 
-def _policy_item(text: str) -> tuple[str, object]:
-  """'field=value' -> (field, value); a comma-separated value is a tuple."""
-  name, sep, value = text.partition("=")
-  if not sep or not name:
-    raise argparse.ArgumentTypeError(f"expected FIELD=VALUE, got {text!r}")
-  return name, tuple(value.split(",")) if "," in value else value
-
-
 def _policy_config(p: argparse.ArgumentParser, args: argparse.Namespace) -> PolicyConfig:
   """PolicyConfig's defaults, then --policy-file, then --ddim-steps / --replan-every /
   --warm-start where given, then --policy; a usage error (exit 2) names a bad field."""
@@ -89,7 +81,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                       "proposal prior (policy field warm_start)")
   p.add_argument("--policy-file", default=None, metavar="FILE.json",
                  help="pcdiff: a JSON object of policy fields, e.g. {\"select_samples\": 4, \"jerk_limit\": [1.5, 5]}")
-  p.add_argument("--policy", nargs="+", default=[], metavar="FIELD=VALUE", type=_policy_item,
+  p.add_argument("--policy", nargs="+", default=[], metavar="FIELD=VALUE", type=_args.policy_item,
                  help="pcdiff: set policy fields (over --policy-file and the flags above), e.g. --policy "
                       "max_curvature=0.3 jerk_limit=1.5,5 (tuples comma-separated); the fields are listed below")
   p.add_argument("--simpl-ar-sample", action="store_true",

@@ -57,7 +57,9 @@ class EvalConfig:
   threatening agent (the pursuer adversarial guidance would pick) when the
   run is not adversarial, for comparison. max_scenarios: the first N
   scenarios of the files only. simpl_ar_sample: SIMPL-AR draws its modes by
-  their probabilities instead of taking the top mode.
+  their probabilities instead of taking the top mode. align_headings: a simulated
+  method starts from box headings aligned with the motion where the log's disagree
+  (`env.align_headings`); log replay replays the log as it is.
 
   The learned methods model up to `metrics.max_reactive_agents` + 1 agents
   (the SDC and every evaluated agent), whatever cap they were trained with,
@@ -80,6 +82,7 @@ class EvalConfig:
   score_adversary: bool = False
   max_scenarios: Optional[int] = None
   simpl_ar_sample: bool = False
+  align_headings: bool = True
 
   @property
   def replan_every(self) -> int:
@@ -142,9 +145,13 @@ def make_rollout_fn(actor: Actor, cfg: EvalConfig, mesh: Optional[Mesh] = None):
   are an argument, not a constant baked into the program. With a `mesh`
   (`pcdiff_jax.distributed.data_mesh`) the B scenarios are split along its
   `data` axis (B a multiple of its devices) and the params replicated."""
+  align = cfg.align_headings and cfg.method != "log"
+
   def one(state, rng, params):
-    return env.rollout(env.reset(state, cfg.init_steps), actor, cfg.num_steps, rng,
-                       params=params).final_state
+    start = env.reset(state, cfg.init_steps)
+    if align:
+      start = env.align_headings(start)
+    return env.rollout(start, actor, cfg.num_steps, rng, params=params).final_state
   fn = jax.vmap(one, in_axes=(0, 0, None))
   if mesh is None:
     return jax.jit(fn)

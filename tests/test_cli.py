@@ -125,6 +125,14 @@ def test_latent_report_needs_a_workdir_or_a_checkpoint(tmp_path, capsys):
   assert str(tmp_path / "none") in capsys.readouterr().err
 
 
+def test_diagnose_drift_checks_its_policy_fields(tmp_path, capsys):
+  from experiments import diagnose
+  for bad, named in (("bogus=1", "bogus"), ("select_samples=0", "select_samples")):
+    with pytest.raises(SystemExit) as err:
+      diagnose.main(["--checkpoint", str(tmp_path), "--scenarios", "x.tfrecord", "drift", "--policy", bad])
+    assert err.value.code == 2 and named in capsys.readouterr().err
+
+
 def test_family_table_weights_scenarios_by_their_agents(tmp_path, capsys):
   from experiments import family_table
   rows = [{"scenario_id": "syn-merge-0-1-0000000", "collision_rate": 0.5, "offroad_rate": 0.0, "num_evaluated": 2},

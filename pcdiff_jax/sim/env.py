@@ -5,12 +5,14 @@ scenario), so it can be jitted once and vmapped or batched over scenarios.
 """
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 from flax import struct
 
+from pcdiff_jax.sim import geometry
 from pcdiff_jax.sim.actors import Actor
 from pcdiff_jax.sim.datatypes import (Action, Array, SimulatorState, Trajectory, num_timesteps, slice_time,
                                       update_time)
@@ -35,6 +37,31 @@ def reset(state: SimulatorState, init_steps: int = WOMD_INIT_STEPS) -> Simulator
   sim = jax.tree_util.tree_map(lambda x: jnp.where(keep, x, fill(x)), state.log_trajectory)
   return state.replace(sim_trajectory=sim,
                        timestep=jnp.full(state.shape, init_steps - 1, jnp.int32))
+
+
+MOTION_HEADING_SPEED = 1.0          # m/s: slower objects keep their box heading (velocity noise)
+MOTION_HEADING_ANGLE = math.pi / 6  # rad: within it of the motion (or of reversing) a heading is kept
+
+
+def align_headings(state: SimulatorState, min_speed: float = MOTION_HEADING_SPEED,
+                   max_angle: float = MOTION_HEADING_ANGLE) -> SimulatorState:
+  """The state with the sim trajectory's box heading replaced by the direction of motion
+  wherever an object moves at >= min_speed and its heading is more than max_angle off both
+  that direction and its opposite (a car does not move sideways), at every step up to the
+  current one; the log is left as it is.
+
+  Some converted real scenes carry box headings unrelated to the motion (docs/DEVELOPING.md,
+  "Known limits"). The kinematic model moves a box along its heading and keeps only the
+  velocity's part along it (`dynamics.states_from_trajectory`), so such a car would start
+  standing and be held by the still gate; aligned, it drives on at its logged speed
+  (docs/WOSAC.md, "WOSAC on the real val scenes")."""
+  sim = state.sim_trajectory
+  motion = jnp.arctan2(sim.vel_y, sim.vel_x)
+  off = jnp.abs(geometry.wrap_angle(motion - sim.yaw))
+  past = jnp.arange(sim.valid.shape[-1]) <= state.timestep[..., None, None]
+  wrong = (sim.valid & past & (sim.speed >= min_speed)
+           & (off > max_angle) & (off < math.pi - max_angle))
+  return state.replace(sim_trajectory=sim.replace(yaw=jnp.where(wrong, motion, sim.yaw)))
 
 
 def step(state: SimulatorState, action: Action, controlled: Array,
