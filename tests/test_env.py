@@ -1,13 +1,18 @@
 """The functional simulator: reset, step, the lax.scan rollout."""
 from __future__ import annotations
 
+import itertools
+import pathlib
+
 import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from conftest import make_scene, stack_states
 from pcdiff_jax import baselines
+from pcdiff_jax.data import womd
 from pcdiff_jax.sim import env
 from pcdiff_jax.sim.datatypes import Action
 
@@ -115,3 +120,16 @@ def test_the_evaluation_harness_aligns_headings_for_a_simulated_method_only(scen
     moved[align] = float(final.sim_trajectory.x[0, 1, 14] - final.sim_trajectory.x[0, 1, 4])
   np.testing.assert_allclose(moved[True], 8.0, atol=1e-3)
   assert abs(moved[False]) < 1e-3
+
+
+def test_align_headings_touches_only_the_real_scenes_whose_headings_spin(real_state):
+  """The real record (WOMD's own headings) and the first clean-heading shared val scenes keep
+  every heading; the first spin scenes of the shared val file (records 3-5) get movers aligned."""
+  turned = lambda s: int(np.sum(np.asarray(env.align_headings(env.reset(s)).sim_trajectory.yaw)
+                                != np.asarray(env.reset(s).sim_trajectory.yaw)))
+  assert turned(real_state) == 0
+  val = pathlib.Path(__file__).resolve().parents[2] / "shared" / "data" / "womd_real" / "val.scenario.tfrecord"
+  if not val.exists():
+    pytest.skip(f"real WOMD val scenes not found at {val} (../shared is absent)")
+  counts = [turned(s) for s in itertools.islice(womd.iterate(str(val)), 6)]
+  assert counts[:3] == [0, 0, 0] and all(c > 0 for c in counts[3:]), counts
