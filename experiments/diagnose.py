@@ -146,12 +146,19 @@ def replay(args, models, cfg, batch, num) -> dict:
   return rows
 
 
-def drift(args, models, cfg, batch, num) -> dict:
-  del models
+def _drift_policy(args) -> policy.PolicyConfig:
+  """drift's PolicyConfig: its flags, then --policy (ValueError / TypeError names a bad field)."""
   pcfg = policy.PolicyConfig(replan_every=args.replan_every, ddim_steps=args.ddim_steps,
                              consistent_noise=args.consistent_noise, execute=args.execute,
                              warm_start=args.warm_start)
   pcfg = policy.with_overrides(pcfg, args.policy)
+  policy.validate(get_config("cpu"), pcfg)   # the presets share these ranges
+  return pcfg
+
+
+def drift(args, models, cfg, batch, num) -> dict:
+  del models
+  pcfg = _drift_policy(args)
   ecfg = evaluation.EvalConfig(method=args.method, checkpoint=args.checkpoint, policy=pcfg)
   actor, params = evaluation.make_actor(ecfg)
   rngs = jax.random.split(jax.random.PRNGKey(args.seed), num)
@@ -307,7 +314,7 @@ def main(argv=None) -> None:
     p.error("--samples must be >= 1")
   if args.section == "drift":
     try:
-      policy.validate(get_config("cpu"), policy.with_overrides(policy.PolicyConfig(), args.policy))
+      _drift_policy(args)
     except (ValueError, TypeError) as err:
       p.error(f"--policy: {err}")
   if not os.path.exists(args.scenarios):
