@@ -14,6 +14,65 @@ def policy_item(text: str) -> tuple[str, object]:
   return name, tuple(value.split(",")) if "," in value else value
 
 
+def add_policy_flags(p: argparse.ArgumentParser) -> None:
+  """The diffusion policy's options: three common flags, a JSON file and
+  generic FIELD=VALUE items (`policy_config` merges them)."""
+  from pcdiff_jax.policy import PolicyConfig
+  p.add_argument("--ddim-steps", type=int, default=None,
+                 help=f"pcdiff: DDIM steps of a cold plan (policy field ddim_steps, default {PolicyConfig.ddim_steps})")
+  p.add_argument("--replan-every", type=int, default=None,
+                 help="pcdiff: steps between plans (policy field replan_every; default 1 = 10 Hz)")
+  p.add_argument("--warm-start", action=argparse.BooleanOptionalAction, default=None,
+                 help="pcdiff: start each replan from the previous plan (the default) or from the "
+                      "proposal prior (policy field warm_start)")
+  p.add_argument("--policy-file", default=None, metavar="FILE.json",
+                 help="pcdiff: a JSON object of policy fields, e.g. {\"select_samples\": 4, \"jerk_limit\": [1.5, 5]}")
+  p.add_argument("--policy", nargs="+", default=[], metavar="FIELD=VALUE", type=policy_item,
+                 help="pcdiff: set policy fields (over --policy-file and the flags above), e.g. --policy "
+                      "max_curvature=0.3 jerk_limit=1.5,5 (tuples comma-separated); the fields are listed below")
+
+
+def policy_fields_epilog() -> str:
+  """A --help epilog: every policy field with its default."""
+  import dataclasses
+  import textwrap
+  from pcdiff_jax.policy import PolicyConfig
+  show = lambda v: ",".join(map(str, v)) if isinstance(v, tuple) else str(v)   # as --policy takes it
+  fields = [f"{f.name}={show(getattr(PolicyConfig(), f.name))}" for f in dataclasses.fields(PolicyConfig)
+            if f.name != "guidance"]
+  return ("policy fields (--policy FIELD=VALUE, --policy-file; pcdiff_jax/policy/config.py says what each does):\n  "
+          + textwrap.fill(" ".join(fields), 96, subsequent_indent="  "))
+
+
+def policy_config(p: argparse.ArgumentParser, args: argparse.Namespace):
+  """PolicyConfig's defaults, then --policy-file, then --ddim-steps / --replan-every /
+  --warm-start where given, then --policy; a usage error (exit 2) names a bad field."""
+  import json
+  from pcdiff_jax.config import get_config
+  from pcdiff_jax.policy import PolicyConfig, validate, with_overrides
+  pcfg = PolicyConfig()
+  if args.policy_file is not None:
+    try:
+      with open(args.policy_file) as f:
+        fields = json.load(f)
+    except (OSError, ValueError) as err:
+      p.error(f"--policy-file {args.policy_file}: {err}")
+    if not isinstance(fields, dict):
+      p.error(f"--policy-file {args.policy_file}: expected a JSON object of policy fields")
+    try:
+      pcfg = with_overrides(pcfg, fields.items())
+    except (ValueError, TypeError) as err:
+      p.error(f"--policy-file {args.policy_file}: {err}")
+  flags = {"ddim_steps": args.ddim_steps, "replan_every": args.replan_every, "warm_start": args.warm_start}
+  try:
+    pcfg = with_overrides(pcfg, [(k, v) for k, v in flags.items() if v is not None])
+    pcfg = with_overrides(pcfg, args.policy)
+    validate(get_config("cpu"), pcfg)   # the presets share the ranges checked here; the actor checks again
+  except (ValueError, TypeError) as err:
+    p.error(f"--policy: {err}")
+  return pcfg
+
+
 def shipped_model_above(path: str):
   """The shipped model folder (one with a MODEL_CARD.md) that `path` is or lies in, else None."""
   folder = os.path.abspath(path)

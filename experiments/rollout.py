@@ -13,56 +13,17 @@ with the one-device results.
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import json
 import sys
-import textwrap
 
 from experiments import _args
 from pcdiff_jax import evaluation
-from pcdiff_jax.config import MetricsConfig, get_config
-from pcdiff_jax.policy import PolicyConfig, validate, with_overrides
+from pcdiff_jax.config import MetricsConfig
 from pcdiff_jax.model.guidance import MODES as GUIDANCE_MODES
 from pcdiff_jax.model.guidance import GuidanceConfig
 
 
-def _policy_config(p: argparse.ArgumentParser, args: argparse.Namespace) -> PolicyConfig:
-  """PolicyConfig's defaults, then --policy-file, then --ddim-steps / --replan-every /
-  --warm-start where given, then --policy; a usage error (exit 2) names a bad field."""
-  pcfg = PolicyConfig()
-  if args.policy_file is not None:
-    try:
-      with open(args.policy_file) as f:
-        fields = json.load(f)
-    except (OSError, ValueError) as err:
-      p.error(f"--policy-file {args.policy_file}: {err}")
-    if not isinstance(fields, dict):
-      p.error(f"--policy-file {args.policy_file}: expected a JSON object of policy fields")
-    try:
-      pcfg = with_overrides(pcfg, fields.items())
-    except (ValueError, TypeError) as err:
-      p.error(f"--policy-file {args.policy_file}: {err}")
-  flags = {"ddim_steps": args.ddim_steps, "replan_every": args.replan_every, "warm_start": args.warm_start}
-  try:
-    pcfg = with_overrides(pcfg, [(k, v) for k, v in flags.items() if v is not None])
-    pcfg = with_overrides(pcfg, args.policy)
-    validate(get_config("cpu"), pcfg)   # the presets share the ranges checked here; the actor checks again
-  except (ValueError, TypeError) as err:
-    p.error(f"--policy: {err}")
-  return pcfg
-
-
-def _policy_fields() -> str:
-  """The --help epilog: every policy field with its default."""
-  show = lambda v: ",".join(map(str, v)) if isinstance(v, tuple) else str(v)   # as --policy takes it
-  fields = [f"{f.name}={show(getattr(PolicyConfig(), f.name))}" for f in dataclasses.fields(PolicyConfig)
-            if f.name != "guidance"]
-  return ("policy fields (--policy FIELD=VALUE, --policy-file; pcdiff_jax/policy/config.py says what each does):\n  "
-          + textwrap.fill(" ".join(fields), 96, subsequent_indent="  "))
-
-
 def parse_args(argv=None) -> argparse.Namespace:
-  p = argparse.ArgumentParser(prog="python -m experiments.rollout", description=__doc__, epilog=_policy_fields(),
+  p = argparse.ArgumentParser(prog="python -m experiments.rollout", description=__doc__, epilog=_args.policy_fields_epilog(),
                               formatter_class=argparse.RawDescriptionHelpFormatter)
   p.add_argument("--scenarios", required=True, nargs="+",
                  help="TFRecord file(s) or glob(s) of WOMD motion tf.Examples or Scenario protos")
@@ -72,18 +33,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                       "simpl-ar; simpl-ar reads its own encoder, simpl_ar/, where the folder has one)")
   p.add_argument("--ego", default="log", choices=evaluation.EGOS,
                  help="the SDC's fixed policy: log replay (default) or IDM")
-  p.add_argument("--ddim-steps", type=int, default=None,
-                 help=f"pcdiff: DDIM steps of a cold plan (policy field ddim_steps, default {PolicyConfig.ddim_steps})")
-  p.add_argument("--replan-every", type=int, default=None,
-                 help="pcdiff: steps between plans (policy field replan_every; default 1 = 10 Hz)")
-  p.add_argument("--warm-start", action=argparse.BooleanOptionalAction, default=None,
-                 help="pcdiff: start each replan from the previous plan (the default) or from the "
-                      "proposal prior (policy field warm_start)")
-  p.add_argument("--policy-file", default=None, metavar="FILE.json",
-                 help="pcdiff: a JSON object of policy fields, e.g. {\"select_samples\": 4, \"jerk_limit\": [1.5, 5]}")
-  p.add_argument("--policy", nargs="+", default=[], metavar="FIELD=VALUE", type=_args.policy_item,
-                 help="pcdiff: set policy fields (over --policy-file and the flags above), e.g. --policy "
-                      "max_curvature=0.3 jerk_limit=1.5,5 (tuples comma-separated); the fields are listed below")
+  _args.add_policy_flags(p)
   p.add_argument("--simpl-ar-sample", action="store_true",
                  help="simpl-ar: draw each agent's mode by its probability (default: the top mode)")
   p.add_argument("--num-rollouts", type=int, default=1,
@@ -145,7 +95,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.error("--eta must be >= 0")
   if args.max_step <= 0:
     p.error("--max-step must be > 0")
-  args.policy_config = _policy_config(p, args)
+  args.policy_config = _args.policy_config(p, args)
   return args
 
 

@@ -32,7 +32,6 @@ from pcdiff_jax import evaluation, wosac
 from pcdiff_jax.config import MetricsConfig
 from pcdiff_jax.data import submission
 from pcdiff_jax.model.guidance import GuidanceConfig
-from pcdiff_jax.policy import PolicyConfig
 
 
 def _shard(text: str) -> tuple[int, int]:
@@ -52,7 +51,7 @@ def _num_parameters(text: str) -> str:
 
 
 def parse_args(argv=None) -> argparse.Namespace:
-  p = argparse.ArgumentParser(prog="python -m experiments.wosac", description=__doc__,
+  p = argparse.ArgumentParser(prog="python -m experiments.wosac", description=__doc__, epilog=_args.policy_fields_epilog(),
                               formatter_class=argparse.RawDescriptionHelpFormatter)
   p.add_argument("--scenarios", nargs="+", required=True,
                  help="WOMD TFRecord file(s) or glob(s): Scenario protos or motion tf.Examples")
@@ -76,11 +75,7 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--max-agents", type=int, default=64,
                  help="learned methods: sim agents they drive besides the SDC, nearest it first (their agent "
                       "cap); IDM drives the others")
-  p.add_argument("--ddim-steps", type=int, default=PolicyConfig.ddim_steps)
-  p.add_argument("--replan-every", type=int, default=1,
-                 help="steps between plans of the diffusion policies (1 = 10 Hz, the challenge's rule)")
-  p.add_argument("--warm-start", action=argparse.BooleanOptionalAction, default=True,
-                 help="pcdiff: amortised replanning from the previous plan (default)")
+  _args.add_policy_flags(p)
   p.add_argument("--guidance", default="none", choices=("none", "objective"),
                  help="pcdiff: objective guidance (map and collision costs) with its default weights")
   p.add_argument("--num-rollouts", type=int, default=submission.NUM_ROLLOUTS,
@@ -117,11 +112,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.error("--workers must be >= 1")
   if args.check is None and args.score is None and args.method in evaluation.LEARNED and not args.checkpoint:
     p.error(f"--method {args.method} needs --checkpoint (e.g. checkpoints/pcdiff-cpu-v8)")
-  for name in ("max_agents", "ddim_steps", "replan_every", "num_rollouts", "rollouts_per_call", "max_objects"):
+  for name in ("max_agents", "num_rollouts", "rollouts_per_call", "max_objects"):
     if getattr(args, name) is not None and getattr(args, name) < 1:
       p.error(f"--{name.replace('_', '-')} must be >= 1")
   if args.max_scenarios is not None and args.max_scenarios < 1:
     p.error("--max-scenarios must be >= 1")
+  args.policy_config = _args.policy_config(p, args)
   return args
 
 
@@ -143,7 +139,7 @@ def _metadata(args, cfg: wosac.WosacConfig) -> submission.Metadata:
       uses_public_model_pretraining=args.uses_public_model_pretraining,
       public_model_names=tuple(args.public_model_names),
       num_model_parameters="" if args.num_model_parameters is None else args.num_model_parameters,
-      acknowledge_complies_with_closed_loop_requirement=args.replan_every == 1)
+      acknowledge_complies_with_closed_loop_requirement=ev.policy.replan_every == 1)
 
 
 def _check(args) -> int:
@@ -199,7 +195,7 @@ def main(argv=None) -> int:
     if args.score is not None:
       return _score(args)
     guidance = GuidanceConfig(mode=args.guidance)
-    pcfg = PolicyConfig(ddim_steps=args.ddim_steps, replan_every=args.replan_every, warm_start=args.warm_start)
+    pcfg = args.policy_config
     ev = evaluation.EvalConfig(method=args.method, checkpoint=args.checkpoint, policy=pcfg, seed=args.seed,
                                metrics=MetricsConfig(max_reactive_agents=args.max_agents), guidance=guidance)
     cfg = wosac.WosacConfig(eval=ev, ego=args.ego, num_rollouts=args.num_rollouts,
@@ -214,7 +210,7 @@ def main(argv=None) -> int:
     if args.method == wosac.LOG_REPLAY:
       print("warning: --method log copies the logged future: a reference to score (--score), NOT a valid "
             "submission", file=sys.stderr)
-    if args.replan_every != 1:
+    if pcfg.replan_every != 1:
       print("warning: --replan-every > 1 is not closed loop at 10 Hz (the challenge's rule); the submission "
             "does not acknowledge it", file=sys.stderr)
     signal.signal(signal.SIGTERM, _interrupt)   # `timeout`, a batch system: keep what is done

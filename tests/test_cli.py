@@ -85,13 +85,25 @@ def test_rollout_help_is_short_and_lists_the_policy_fields(capsys):
   assert len(options) <= 36, options   # 52 with one flag per policy field
 
 
+def test_wosac_takes_the_same_policy_options(tmp_path, capsys):
+  from experiments import wosac
+  args = wosac.parse_args(["--scenarios", "x", "--out", str(tmp_path / "s.binproto"), "--method", "pcdiff",
+                           "--checkpoint", "c", "--ddim-steps", "3", "--policy", "select_samples=4", "eta=0.5"])
+  pcfg = args.policy_config
+  assert (pcfg.ddim_steps, pcfg.select_samples, pcfg.eta, pcfg.replan_every) == (3, 4, 0.5, 1)
+  for bad, named in (("bogus=1", "bogus"), ("ddim_steps=0", "ddim_steps")):
+    with pytest.raises(SystemExit) as err:
+      wosac.parse_args(["--scenarios", "x", "--out", str(tmp_path / "s.binproto"), "--method", "cv", "--policy", bad])
+    assert err.value.code == 2 and named in capsys.readouterr().err
+
+
 CLIS = ("bench", "demo", "diagnose", "export", "family_table", "finetune", "guidance_figure", "latent_report",
-        "make_data", "open_loop", "rollout", "train", "wosac")
+        "make_data", "open_loop", "refit_head", "rollout", "train", "wosac")
 # Each CLI's output option, given a path that cannot be written as asked.
 BAD_OUTPUTS = {"demo": ("--out", "file"), "diagnose": ("--out", "folder"), "export": ("--out", "file"),
                "finetune": ("--workdir", "file"), "guidance_figure": ("--out", "file"),
                "latent_report": ("--out", "file"), "make_data": ("--out", "below-file"),
-               "open_loop": ("--out", "file"), "rollout": ("--out", "file"), "train": ("--workdir", "file"),
+               "open_loop": ("--out", "file"), "refit_head": ("--workdir", "file"), "rollout": ("--out", "file"), "train": ("--workdir", "file"),
                "wosac": ("--out", "folder")}
 
 

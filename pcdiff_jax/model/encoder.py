@@ -74,8 +74,8 @@ from pcdiff_jax.sim.datatypes import Array
 _NEG = -1e9            # attention logit of a masked sender
 _MIN_SPEED_SQ = 1e-6   # (m per unit tau)^2 below which a proposal's yaw is held
 _DIST_QUANTUM = 0.01   # m, resolution of the neighbour ranking
-_DT = 0.1              # s, the WOMD step
-_VX = features_lib.AGENT_CHANNELS.index("vel_x")
+DT = 0.1               # s, the WOMD step
+VX = features_lib.AGENT_CHANNELS.index("vel_x")
 
 
 @struct.dataclass
@@ -343,9 +343,9 @@ class SceneEncoder(nn.Module):
     if lane is not None:   # a short path from where the lane goes to the proposals' shape
       head_in = head_in + nn.Dense(d, kernel_init=nn.initializers.zeros, name="head_lane")(lane)
 
-    speed = hist[:, -1, _VX]                                          # (A,) agent frame
+    speed = hist[:, -1, VX]                                          # (A,) agent frame
     logits, ctrl = ProposalHead(d, cfg.num_modes, cfg.bezier_degree, cfg.proposal_scale,
-                                cfg.anchor_velocity, cfg.horizon * _DT,
+                                cfg.anchor_velocity, cfg.horizon * DT,
                                 name="head")(head_in, speed)
     basis, deriv = bezier_basis(cfg.bezier_degree, cfg.horizon)
     ctrl = jnp.where(av[:, None, None, None], ctrl, 0.0)              # padded agents stand still

@@ -109,6 +109,8 @@ def with_overrides(policy: PolicyConfig, overrides) -> PolicyConfig:
 
 def validate(cfg: Config, policy: PolicyConfig) -> None:
   """Raises ValueError naming the first PolicyConfig field out of range."""
+  if policy.ddim_steps < 1:
+    raise ValueError(f"ddim_steps must be >= 1, got {policy.ddim_steps}")
   if policy.replan_every < 1 or policy.replan_every > cfg.encoder.horizon:
     raise ValueError(f"replan_every must be in [1, {cfg.encoder.horizon}], got {policy.replan_every}")
   if policy.prior_centre not in ("mean", "top1"):
