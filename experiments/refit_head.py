@@ -5,10 +5,12 @@
       --val-data ../shared/data/womd_real/val.scenario.tfrecord --steps 10000 --workdir runs/head
 
 Writes WORKDIR/encoder (--from's encoder with the refit head: `--method
-simpl-ar --checkpoint WORKDIR` runs it) and WORKDIR/refit_summary.json (the
-prediction metrics of every --val-data file before and after, and the speed
-bias of the most likely proposal: `pcdiff_jax.training.head_refit`). The
-diffusion policy reads the proposals too; re-train its denoiser on them:
+simpl-ar --checkpoint WORKDIR` runs it), WORKDIR/diffusion (--from's denoiser
+on the refit encoder, not re-trained: `--method pcdiff --checkpoint WORKDIR`)
+and WORKDIR/refit_summary.json (the prediction metrics of every --val-data
+file before and after, and the speed bias of the most likely proposal:
+`pcdiff_jax.training.head_refit`). The denoiser reads the proposals too;
+re-train it on the new ones:
 
   python -m experiments.finetune --from checkpoints/pcdiff-cpu-v8 --encoder-from runs/head \\
       --data 'data/synth600/train-*' --workdir runs/v10 --rounds 2 --scenes 150 --steps 800
@@ -54,6 +56,26 @@ def parse_args(argv=None) -> argparse.Namespace:
   return args
 
 
+def _write_denoiser(source: str, workdir: str, encoder_params) -> None:
+  """WORKDIR/diffusion := SOURCE's stage-2 checkpoint with ENCODER_PARAMS as
+  its frozen encoder (the one the diffusion policy reads), when SOURCE has one."""
+  from pcdiff_jax.training import diffusion_stage, trainer
+  stage = diffusion_stage.stage_dir(True)
+  if not os.path.isdir(os.path.join(source, stage)):
+    return
+  src = trainer.Checkpointer(os.path.join(source, stage), read_only=True)
+  try:
+    step, config, raw = src.latest_step(), src.read_config(), src.restore_raw()
+  finally:
+    src.close()
+  raw["extra"]["encoder"] = encoder_params
+  dst = trainer.Checkpointer(os.path.join(workdir, stage), keep=1)
+  try:
+    dst.save_raw(step, raw, config)
+  finally:
+    dst.close()
+
+
 def main(argv=None) -> int:
   args = parse_args(argv)
   _args.setup_logging()
@@ -95,6 +117,7 @@ def main(argv=None) -> int:
       out.save_raw(args.steps, {"step": raw["step"], "params": refit, "rng": raw["rng"]}, config_lib.to_dict(cfg))
     finally:
       out.close()
+    _write_denoiser(args.source, args.workdir, refit)
     summary = {"from": args.source, "args": vars(args), "minutes": (time.time() - t0) / 60,
                "val": {path: {"before": before[path], "after": after[path]} for path in vals}}
     with open(os.path.join(args.workdir, "refit_summary.json"), "w") as f:
@@ -104,7 +127,8 @@ def main(argv=None) -> int:
         print(f"{path} {when}: minADE6 {m['min_ade']:.3f} minFDE6 {m['min_fde']:.3f} "
               f"brier-minFDE {m['brier_min_fde']:.3f} miss {m['miss_rate']:.3f} "
               f"speed bias 1 s {m['speed_bias_1s']:+.2f} 3 s {m['speed_bias_3s']:+.2f} m/s")
-    print(f"wrote {args.workdir}/{encoder_stage.STAGE_DIR} and {args.workdir}/refit_summary.json")
+    print(f"wrote {args.workdir}/{encoder_stage.STAGE_DIR}, diffusion/ (where --from has one) and "
+          f"{args.workdir}/refit_summary.json")
   except (FileNotFoundError, ValueError, trainer.CheckpointMismatch) as err:
     print(f"error: {err}", file=sys.stderr)
     return 2

@@ -193,6 +193,29 @@ def test_finetune_simpl_ar_trains_its_own_encoder_only(tiny_trained, womd_path, 
     finetune.parse_args(argv[:at] + argv[at + 2:])           # no --encoder-steps: nothing to train
 
 
+def test_refit_head_moves_the_head_only_and_runs_as_both_methods(tiny_trained, womd_path, tmp_path, capsys):
+  """`experiments.refit_head`: WORKDIR/encoder differs from --from's in the head
+  alone, WORKDIR/diffusion is --from's denoiser reading it, and the summary has
+  the metrics before and after."""
+  import pcdiff_jax
+  from experiments import refit_head
+  source, out = tiny_trained["shipped"], str(tmp_path / "head")
+  argv = ["--from", source, "--data", womd_path, "--real-data", womd_path, "--val-data", womd_path,
+          "--workdir", out, "--steps", "3", "--batch-size", "2", "--cache-dir",
+          os.path.join(tiny_trained["work"], "cache"), "--no-progress"]
+  assert refit_head.main(argv) == 0
+  before, _ = pcdiff_jax.pretrained(path=source)
+  after, _ = pcdiff_jax.pretrained(path=out)
+  assert jax.tree_util.tree_all(jax.tree_util.tree_map(np.array_equal, before.denoiser, after.denoiser))
+  for name, sub in before.encoder["params"].items():
+    same = all(np.array_equal(a, b) for a, b in zip(jax.tree_util.tree_leaves(sub),
+                                                     jax.tree_util.tree_leaves(after.encoder["params"][name])))
+    assert same == (name not in ("head", "head_lane")), name
+  summary = json.load(open(os.path.join(out, "refit_summary.json")))
+  assert set(summary["val"][womd_path]) == {"before", "after"}
+  assert "speed bias" in capsys.readouterr().out
+
+
 def test_demo_pipeline_runs_end_to_end(tiny_trained, tmp_path):
   out = str(tmp_path / "demo")
   model = tiny_trained["shipped"]                   # a shipped folder, as `make demo` loads
