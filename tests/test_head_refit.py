@@ -59,6 +59,8 @@ def test_refit_trains_the_head_only_and_lowers_the_loss(params, examples, tmp_pa
     assert same == (name not in head_refit.HEAD_PARAMS), name
   m = head_refit.evaluate(head_refit.head_params(refit), CFG, trunk)
   assert m["count"] > 0 and np.isfinite(m["min_ade"]) and np.isfinite(m["speed_bias_1s"])
+  padded = head_refit.evaluate(head_refit.head_params(refit), CFG, trunk, batch_size=3)   # 2 examples + 1 pad
+  assert padded == pytest.approx(m, rel=1e-5)
 
 
 def test_mixed_batches_take_each_sources_share(params, examples):

@@ -11,6 +11,7 @@ CPU. The denoiser reads the proposals too: re-train it on the new ones
 """
 from __future__ import annotations
 
+import functools
 import types
 from typing import Any, Sequence
 
@@ -140,33 +141,37 @@ def refit(params: Any, cfg: Config, sources: Sequence[TrunkOutputs], shares: Seq
   return with_head(params, jax.device_get(state.params))
 
 
+@functools.partial(jax.jit, static_argnums=1)
+def _metric_sums(head: dict, cfg: Config, batch: TrunkOutputs) -> dict:
+  """`evaluate`'s sums over one batch (compiled once per config and batch size)."""
+  out = _output(head, cfg, batch)
+  s = encoder_loss.prediction_metrics(out, types.SimpleNamespace(agent_history=batch.last[..., None, :]),
+                                      batch.targets)
+  dt = encoder.DT
+  speed = jnp.linalg.norm(jnp.diff(out.trajectories, axis=-2), axis=-1) / dt      # (..., A, K, T-1)
+  top = jnp.take_along_axis(speed, jnp.argmax(out.probs, -1)[..., None, None], -2)[..., 0, :]
+  logged = jnp.linalg.norm(jnp.diff(batch.targets.future_xy, axis=-2), axis=-1) / dt
+  pairs = batch.targets.future_valid[..., 1:] & batch.targets.future_valid[..., :-1]
+  moving = batch.valid & (batch.speed > MOVING)
+  for name, j in (("speed_bias_1s", 9), ("speed_bias_3s", 29)):
+    ok = moving & pairs[..., j]
+    s[name] = jnp.sum(jnp.where(ok, top[..., j] - logged[..., j], 0.0))
+    s[name + "_count"] = jnp.sum(ok).astype(jnp.float32)
+  return s
+
+
 def evaluate(head: dict, cfg: Config, trunk: TrunkOutputs, batch_size: int = 32) -> dict:
   """Stage 1's prediction metrics (minADE6, minFDE6, miss rate, brier-minFDE)
   and the most likely proposal's speed minus the log's at 1 s and 3 s for
   agents moving at t (`speed_bias_1s`, `speed_bias_3s`, m/s): a negative
   bias is a predictor that brakes where the drivers did not."""
-  @jax.jit
-  def sums(batch):
-    out = _output(head, cfg, batch)
-    s = encoder_loss.prediction_metrics(out, types.SimpleNamespace(agent_history=batch.last[..., None, :]),
-                                        batch.targets)
-    dt = encoder.DT
-    speed = jnp.linalg.norm(jnp.diff(out.trajectories, axis=-2), axis=-1) / dt      # (..., A, K, T-1)
-    top = jnp.take_along_axis(speed, jnp.argmax(out.probs, -1)[..., None, None], -2)[..., 0, :]
-    logged = jnp.linalg.norm(jnp.diff(batch.targets.future_xy, axis=-2), axis=-1) / dt
-    pairs = batch.targets.future_valid[..., 1:] & batch.targets.future_valid[..., :-1]
-    moving = batch.valid & (batch.speed > MOVING)
-    for name, j in (("speed_bias_1s", 9), ("speed_bias_3s", 29)):
-      ok = moving & pairs[..., j]
-      s[name] = jnp.sum(jnp.where(ok, top[..., j] - logged[..., j], 0.0))
-      s[name + "_count"] = jnp.sum(ok).astype(jnp.float32)
-    return s
-
   n = trunk.valid.shape[0]
   total = None
   for start in range(0, n, batch_size):
-    idx = np.arange(start, min(start + batch_size, n))
-    s = jax.device_get(sums(take(trunk, idx)))
+    idx = np.arange(start, start + batch_size)
+    batch = take(trunk, np.minimum(idx, n - 1))
+    batch = batch.replace(valid=batch.valid & (idx < n)[:, None])   # padding rows score nothing
+    s = jax.device_get(_metric_sums(head, cfg, batch))
     total = s if total is None else {k: total[k] + s[k] for k in s}
   biases = {k: float(total[k]) / max(float(total[k + "_count"]), 1.0)
             for k in ("speed_bias_1s", "speed_bias_3s")}
