@@ -29,6 +29,10 @@ replanning (`replan_select8`) and the 80-step closed loop with every default
 with four samples too), the actor's state made once per scenario outside the timed loop (its road
 field: `default_actor_init_ms`). Compile time is excluded and reported separately.
 
+`wosac` (not in the default sections): seconds per scene of a WOSAC export
+of ours (`--wosac-checkpoint`) with every plan in 65 agent slots against
+plans sized to the scene (`wosac.plan_cap`), scene by scene, compile excluded.
+
 `devices`: data-parallel training steps/s (the stage-1 step, the preset's
 global batch split over N devices) and scenario-parallel closed-loop scenes/s
 (cv and ours, untrained weights) over the first N devices, for N in
@@ -413,7 +417,35 @@ def bench_devices(path: str, preset: str, counts: list[int], train_steps: int, r
           "train_encoder_step": train_rows, "closed_loop": rollout_rows}
 
 
-SECTIONS = ("parse", "rollout", "encoder", "policy", "guidance", "lanes", "devices")
+def bench_wosac_plans(path: str, checkpoint: str, num_scenes: int, num_rollouts: int) -> list[dict]:
+  """Seconds per scene of a WOSAC export (`wosac.Simulator.simulate`) with the
+  plan in the full cap's 65 slots against the slots sized to the scene
+  (`WosacConfig.size_plans`), for the first `num_scenes` scenes of `path`; each
+  timed call follows an untimed one of the same scene (its compile)."""
+  from pcdiff_jax import evaluation, wosac
+  from pcdiff_jax.data import womd
+  rows = []
+  sims = {sized: wosac.Simulator(wosac.WosacConfig(
+      eval=evaluation.EvalConfig(method="pcdiff", checkpoint=checkpoint), num_rollouts=num_rollouts,
+      rollouts_per_call=num_rollouts, size_plans=sized)) for sized in (False, True)}
+  for state, meta in womd.iterate([path], with_meta=True, history_only=True, max_num_objects=None,
+                                  max_scenarios=num_scenes, to_jax=False):
+    agents = int(np.asarray(state.log_trajectory.valid)[:, 10].sum())
+    row = {"scenario_id": meta.scenario_id, "sim_agents": agents,
+           "cap": sims[True].learned_run(state)[2]}
+    for sized, sim in sims.items():
+      sim.simulate(state, meta.scenario_id)
+      t0, c0 = time.perf_counter(), time.process_time()
+      sim.simulate(state, meta.scenario_id)
+      key = "sized" if sized else "full"
+      row[f"{key}_s"], row[f"{key}_cpu_s"] = time.perf_counter() - t0, time.process_time() - c0
+    row["cpu_ratio"] = row["full_cpu_s"] / row["sized_cpu_s"]
+    print(json.dumps(row), flush=True)
+    rows.append(row)
+  return rows
+
+
+SECTIONS = ("parse", "rollout", "encoder", "policy", "guidance", "lanes", "devices", "wosac")
 
 
 def main(argv=None) -> int:
@@ -437,8 +469,11 @@ def main(argv=None) -> int:
   p.add_argument("--device-train-steps", type=int, default=5, help="devices: timed training steps")
   p.add_argument("--device-batch", type=int, default=4, help="devices: scenes per closed-loop call")
   p.add_argument("--device-rollout-steps", type=int, default=80, help="devices: closed-loop steps")
-  p.add_argument("--sections", nargs="+", default=[s for s in SECTIONS if s != "devices"], choices=SECTIONS,
-                 help="default: all but devices")
+  p.add_argument("--wosac-checkpoint", default="checkpoints/pcdiff-cpu-v8", help="wosac: the learned model")
+  p.add_argument("--wosac-scenes", type=int, default=4, help="wosac: the first N scenes of --scenarios")
+  p.add_argument("--wosac-rollouts", type=int, default=32, help="wosac: rollouts per scene (one jitted call)")
+  p.add_argument("--sections", nargs="+", default=[s for s in SECTIONS if s not in ("devices", "wosac")],
+                 choices=SECTIONS, help="default: all but devices and wosac")
   p.add_argument("--json", help="also write the results here")
   args = p.parse_args(argv)
   if not os.path.isfile(args.scenarios):
@@ -472,6 +507,9 @@ def main(argv=None) -> int:
     results["devices"] = bench_devices(args.scenarios, args.policy_preset, args.device_counts,
                                        args.device_train_steps, args.device_batch, args.device_rollout_steps,
                                        args.repeats)
+  if "wosac" in args.sections:
+    results["wosac_plans"] = bench_wosac_plans(args.scenarios, args.wosac_checkpoint, args.wosac_scenes,
+                                               args.wosac_rollouts)
   print(json.dumps(results, indent=2))
   if args.json:
     with open(args.json, "w") as f:

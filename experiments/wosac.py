@@ -75,6 +75,10 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--max-agents", type=int, default=64,
                  help="learned methods: sim agents they drive besides the SDC, nearest it first (their agent "
                       "cap); IDM drives the others")
+  p.add_argument("--full-plans", action="store_true",
+                 help="learned methods: plan every scene in the full cap's slots instead of the fewest of 16, "
+                      "32, 64, ... that hold its sim agents (the random draws of exports made before plans were "
+                      "sized; slower on small scenes)")
   _args.add_policy_flags(p)
   p.add_argument("--guidance", default="none", choices=("none", "objective"),
                  help="pcdiff: objective guidance (map and collision costs) with its default weights")
@@ -199,7 +203,8 @@ def main(argv=None) -> int:
     ev = evaluation.EvalConfig(method=args.method, checkpoint=args.checkpoint, policy=pcfg, seed=args.seed,
                                metrics=MetricsConfig(max_reactive_agents=args.max_agents), guidance=guidance)
     cfg = wosac.WosacConfig(eval=ev, ego=args.ego, num_rollouts=args.num_rollouts,
-                            rollouts_per_call=args.rollouts_per_call, max_objects=args.max_objects)
+                            rollouts_per_call=args.rollouts_per_call, max_objects=args.max_objects,
+                            size_plans=not args.full_plans)
     target = submission.shard_path(args.out, *(args.shard or (None, None)))
     if os.path.exists(target) and not args.overwrite:
       print(f"{target} exists: nothing to do (--overwrite to write it again)", file=sys.stderr)

@@ -9,7 +9,9 @@ Who drives whom (`make_actor`): the sim agents are the objects valid at step
 (`pcdiff`, `pcdiff-noprior`, `simpl-ar`) drives the SDC and the
 `eval.metrics.max_reactive_agents` sim agents nearest it (its agent cap, raised
 at rollout time as in `evaluation.with_agent_cap`); IDM drives the sim agents
-beyond the cap (the reactive fallback). `ego="idm"` hands the SDC to IDM instead.
+beyond the cap (the reactive fallback). A scene with fewer sim agents is
+planned in fewer slots (`plan_cap`: 16, 32, 64, ...), the work sized to it.
+`ego="idm"` hands the SDC to IDM instead.
 
 What the simulation sees: the scenario read with `history_only` (no logged
 state after step 10: objects that appear later never do, and no sim agent's
@@ -56,13 +58,17 @@ class WosacConfig:
   rollouts_per_call: rollouts per jitted call (memory against speed).
   max_objects: padded object count, or None (default) for the first of
   `womd.OBJECT_BUCKETS` (128, 256, ...) that holds each scene: no scene is
-  refused for its size, and the closed loop compiles once per bucket. hold_lights: step 10's traffic lights for the whole rollout."""
+  refused for its size, and the closed loop compiles once per bucket. hold_lights: step 10's traffic lights for the whole rollout.
+  size_plans: a learned method plans a scene in the fewest of 16, 32, 64, ... agent slots
+  (`plan_slots`) that hold its sim agents, up to its cap: less work on small scenes, the same
+  model but other random draws than the full cap (False: always the cap's slots)."""
   eval: evaluation.EvalConfig = evaluation.EvalConfig()
   ego: str = "method"
   num_rollouts: int = submission.NUM_ROLLOUTS
   rollouts_per_call: int = submission.NUM_ROLLOUTS
   max_objects: Optional[int] = None
   hold_lights: bool = True
+  size_plans: bool = True
 
   def validate(self) -> None:
     if self.eval.method not in METHODS + (LOG_REPLAY,):
@@ -175,16 +181,40 @@ def log_replay(state, num_rollouts: int) -> ScenarioResult:
   return ScenarioResult(object_ids=ids, trajectories=np.repeat(out, num_rollouts, 0), lost=0)
 
 
+def plan_cap(num_sim_agents: int, cap: int) -> int:
+  """The agent cap (plan slots besides the SDC's) a learned method plans a scene
+  with under `WosacConfig.size_plans`: the first of 15, 31, 63, ... (16, 32, 64
+  slots) that holds `num_sim_agents` (the SDC excluded), or `cap` when that is
+  smaller."""
+  bucket = 15
+  while bucket < num_sim_agents and bucket < cap:
+    bucket = 2 * bucket + 1
+  return min(bucket, cap)
+
+
+@dataclasses.dataclass(frozen=True)
+class _LearnedRuns:
+  """A learned method's jitted closed loops at one agent cap: with the IDM
+  fallback and without it (`drive_all`), and the actor whose controlled set
+  decides between them."""
+  learned: Actor
+  run: Any
+  params: Any
+  run_alone: Any
+  params_alone: Any
+
+
 class Simulator:
   """The jitted closed loop of one method, `rollouts_per_call` rollouts per
-  call. A learned method has two: with the IDM fallback, and without it for
-  the scenes whose every sim agent the learned actor drives (the same
-  rollouts up to float rounding, less compute; each compiles once per
-  object bucket)."""
+  call. A learned method has two per agent cap: with the IDM fallback, and
+  without it for the scenes whose every sim agent the learned actor drives
+  (the same rollouts up to float rounding, less compute); each compiles once
+  per object bucket and agent cap (`plan_cap`)."""
 
   def __init__(self, cfg: WosacConfig):
     self.cfg = cfg
     self.learned = self.run_alone = None
+    self._by_cap: dict[int, _LearnedRuns] = {}
     if cfg.eval.method == LOG_REPLAY:
       cfg.validate()
       self.actor, self.params, self.run = None, None, None
@@ -194,23 +224,49 @@ class Simulator:
       self.run = evaluation.make_rollout_fn(self.actor, cfg.eval)
       return
     cfg.validate()
-    actor, models = evaluation.make_actor(dataclasses.replace(cfg.eval, ego="log"))
-    self.actor, self.params = drive_all(actor, models, learned=True, ego=cfg.ego)
-    self.run = evaluation.make_rollout_fn(self.actor, cfg.eval)
-    alone, self.params_alone = drive_all(actor, models, learned=True, ego=cfg.ego, fallback=False)
-    self.learned = with_sdc(actor) if cfg.ego == "method" else actor
-    self.run_alone = evaluation.make_rollout_fn(alone, cfg.eval)
+    full = self._runs_at(cfg.eval.metrics.max_reactive_agents)
+    self.learned, self.run, self.params, self.run_alone, self.params_alone = (
+        full.learned, full.run, full.params, full.run_alone, full.params_alone)
 
-  def needs_fallback(self, state) -> bool:
+  def _runs_at(self, cap: int) -> _LearnedRuns:
+    """The learned method's closed loops with `cap` agents besides the SDC, built once."""
+    if cap not in self._by_cap:
+      cfg = self.cfg
+      metrics = dataclasses.replace(cfg.eval.metrics, max_reactive_agents=cap)
+      actor, models = evaluation.make_actor(dataclasses.replace(cfg.eval, ego="log", metrics=metrics))
+      with_fallback, params = drive_all(actor, models, learned=True, ego=cfg.ego)
+      alone, params_alone = drive_all(actor, models, learned=True, ego=cfg.ego, fallback=False)
+      self._by_cap[cap] = _LearnedRuns(
+          learned=with_sdc(actor) if cfg.ego == "method" else actor,
+          run=evaluation.make_rollout_fn(with_fallback, cfg.eval), params=params,
+          run_alone=evaluation.make_rollout_fn(alone, cfg.eval), params_alone=params_alone)
+    return self._by_cap[cap]
+
+  def needs_fallback(self, state, learned: Optional[Actor] = None) -> bool:
     """Whether a sim agent of this (unbatched, loaded) scene is left to the
-    IDM fallback: the learned actor's controlled set at `init`, outside jit."""
+    IDM fallback: the learned actor's (default: at the full cap) controlled
+    set at `init`, outside jit."""
     from pcdiff_jax.sim import env
     reset = env.reset(state, self.cfg.eval.init_steps)
-    inner = self.learned.init(jax.random.PRNGKey(0), reset)
+    inner = (learned or self.learned).init(jax.random.PRNGKey(0), reset)
     covered = np.asarray(inner if isinstance(inner, jax.Array) else inner.controlled)
     if self.cfg.ego == "idm":
       covered = covered | np.asarray(reset.object_metadata.is_sdc)
     return bool((np.asarray(sim_agents_mask(reset)) & ~covered).any())
+
+  def learned_run(self, state) -> tuple[Any, Any, int]:
+    """(run, params, cap) of a learned method for one loaded scene: the agent
+    cap `plan_cap` sizes to it (or the full cap), without the IDM fallback
+    where the learned actor drives every sim agent."""
+    cap = self.cfg.eval.metrics.max_reactive_agents
+    if self.cfg.size_plans:
+      now = np.asarray(state.log_trajectory.valid)[:, submission.CURRENT_INDEX]
+      sdc = bool((now & np.asarray(state.object_metadata.is_sdc)).any())
+      cap = plan_cap(int(now.sum()) - sdc, cap)
+    runs = self._runs_at(cap)
+    if self.needs_fallback(state, runs.learned):
+      return runs.run, runs.params, cap
+    return runs.run_alone, runs.params_alone, cap
 
   def simulate(self, state, scenario_id: str) -> ScenarioResult:
     """One loaded (unbatched) scenario -> its rollouts."""
@@ -228,8 +284,8 @@ class Simulator:
     keys = jnp.concatenate([keys, jnp.repeat(keys[-1:], calls * per_call - cfg.num_rollouts, 0)])
     tiled = jax.tree_util.tree_map(lambda a: jnp.repeat(jnp.asarray(a)[None], per_call, 0), state)
     run, params = self.run, self.params
-    if self.run_alone is not None and not self.needs_fallback(state):
-      run, params = self.run_alone, self.params_alone
+    if self.learned is not None:
+      run, params, _ = self.learned_run(state)
     parts = []
     for c in range(calls):
       final = run(tiled, keys[c * per_call:(c + 1) * per_call], params)

@@ -393,3 +393,67 @@ def test_an_interrupted_export_keeps_the_scenarios_it_finished(womd_path, tmp_pa
   with pytest.raises(KeyboardInterrupt):
     cli.main(["--scenarios", scenarios, "--method", "cv", "--out", out, "--num-rollouts", "2", "--no-progress"])
   assert sorted(os.listdir(tmp_path)) == ["scenario.tfrecord"]
+
+
+def test_plan_cap_is_the_first_bucket_that_holds_the_scene():
+  assert [wosac.plan_cap(n, 64) for n in (0, 3, 15, 16, 31, 32, 63, 64, 200)] == [15, 15, 15, 31, 31, 63, 63, 64, 64]
+  assert wosac.plan_cap(20, 24) == 24 and wosac.plan_cap(3, 8) == 8
+
+
+def test_more_plan_slots_leave_the_valid_agents_plans_as_they_are(tiny_models):
+  """What sizing the plan to the scene rests on: the same scene (4 agents) in 4
+  or 8 agent slots gives its agents the same prior and denoiser output (the
+  padded slots' latents are junk), so a smaller plan changes only the random draws."""
+  import dataclasses
+  import functools
+  import jax.numpy as jnp
+  from conftest import make_scene
+  from pcdiff_jax.config import get_config
+  from pcdiff_jax.model import denoiser as denoiser_lib
+  from pcdiff_jax.model import features as features_lib
+  from pcdiff_jax.model import planner
+  from pcdiff_jax.sim import env
+  start = env.reset(make_scene(num_steps=91), init_steps=11)
+
+  @functools.partial(jax.jit, static_argnums=2)
+  def denoised(state, y, cfg):
+    feats = jax.tree_util.tree_map(lambda a: a[None], features_lib.scene_features(state, cfg.features))
+    cond = planner.condition(tiny_models.encoder, tiny_models.stats, feats, cfg)
+    out = denoiser_lib.apply(tiny_models.denoiser, y[None], jnp.int32(40), cond.inputs, cfg.diffusion.denoiser)
+    return feats.agent_valid[0], cond.mu[0], out[0]
+
+  tiny = get_config("tiny")
+  d = tiny.diffusion.latent_dim
+  agents_y = jax.random.normal(jax.random.PRNGKey(1), (4, d))
+  outs = {}
+  for slots in (4, 8):
+    cfg = dataclasses.replace(tiny, features=dataclasses.replace(tiny.features, max_agents=slots))
+    junk = 40.0 * jax.random.normal(jax.random.PRNGKey(0), (slots - 4, d))
+    outs[slots] = denoised(start, jnp.concatenate([agents_y, junk]), cfg)
+  (valid4, mu4, out4), (valid8, mu8, out8) = outs[4], outs[8]
+  assert bool(valid4.all()) and bool(valid8[:4].all()) and not bool(valid8[4:].any())
+  np.testing.assert_allclose(np.asarray(mu8)[:4], np.asarray(mu4), atol=1e-4)
+  np.testing.assert_allclose(np.asarray(out8)[:4], np.asarray(out4), atol=1e-4)
+
+
+def test_a_learned_method_plans_each_scene_in_the_slots_it_needs(tiny_models, monkeypatch):
+  """make_scene's 4 sim agents (the SDC among them): 16 slots and no IDM
+  fallback under size_plans; the cap's own slots without it; a cap below the
+  scene keeps the fallback."""
+  from conftest import make_scene
+  from pcdiff_jax import evaluation, policy
+  from pcdiff_jax.config import MetricsConfig, get_config
+
+  def tiny_actor(ev):
+    return policy.actor(evaluation.with_agent_cap(get_config("tiny"), ev.metrics), ev.policy), tiny_models
+  monkeypatch.setattr(wosac.evaluation, "make_actor", tiny_actor)
+  state = wosac.hold_current_lights(make_scene(num_steps=91))
+  for cap, size_plans, expect_cap, expect_fallback in ((64, True, 15, False), (64, False, 64, False),
+                                                       (2, True, 2, True)):
+    ev = evaluation.EvalConfig(method="pcdiff", checkpoint="unused", num_steps=80, init_steps=11,
+                               metrics=MetricsConfig(max_reactive_agents=cap))
+    sim = wosac.Simulator(wosac.WosacConfig(eval=ev, size_plans=size_plans))
+    run, params, chosen = sim.learned_run(state)
+    runs = sim._runs_at(chosen)
+    assert chosen == expect_cap and (run is runs.run) == expect_fallback and (run is runs.run_alone) != expect_fallback
+    assert params is (runs.params if expect_fallback else runs.params_alone)
