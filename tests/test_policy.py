@@ -479,29 +479,3 @@ def test_a_noisy_logged_speed_does_not_force_an_acceleration(models):
   action, _ = policy.step(noisy, models, CFG, jax.random.PRNGKey(1),
                           policy.PolicyConfig(select_samples=1, still_gate=(0.0, 0.0)))
   assert np.all(np.abs(np.asarray(action.data)[:, 0]) <= CFG.kinematics.max_accel + 1e-5)
-
-
-def test_a_drawn_still_gate_lets_an_agent_go_as_often_as_its_proposals_say(models):
-  """still_gate_draw: a slow agent is held while the probability of its proposals that
-  travel `metres` is at most its rollout's uniform: with metres = 0 every proposal goes
-  (probability 1), so only a draw of 1 holds it; with an unreachable distance none does,
-  so every slow agent is held, as by the weighted-distance gate. Fast agents never are."""
-  from pcdiff_jax.policy import planning
-  state = env.reset(make_scene(num_steps=91, speeds=(10.0, 0.0, 0.3, 8.0)))
-  num_objects = state.object_metadata.ids.shape[-1]
-  slow = np.array([False, True, True, False])
-
-  def held(metres, u):
-    cfg = policy.PolicyConfig(select_samples=1, still_gate=(2.0, metres), still_gate_draw=True)
-    scene = jax.jit(lambda s, d: planning.encode(models, s, CFG, cfg, gate_draw=d))(state, jnp.full((num_objects,), u))
-    return by_object(scene)
-
-  def by_object(scene):   # the agent rows' hold flags, in object order
-    rows = np.asarray(scene.feats.agent_valid)
-    out = np.zeros(num_objects, bool)
-    out[np.asarray(scene.feats.agent_index)[rows]] = np.asarray(scene.hold)[rows]
-    return out[:4]
-  assert not held(0.0, 0.5).any() and (held(0.0, 1.0) == slow).all()
-  assert (held(1e3, 0.0) == slow).all()
-  weighted = policy.PolicyConfig(select_samples=1, still_gate=(2.0, 1e3))
-  assert (by_object(planning.encode(models, state, CFG, weighted)) == slow).all()

@@ -31,8 +31,7 @@ class PlanState:
   scene's road signed-distance field for guidance, built once at `init`;
   path (O, T, 2) the last plan's positions in the world frame (execute="track"); accel (O,)
   the acceleration executed at the last step, before the first the log's trend
-  (`execution.logged_accel`): the jerk limit's reference; gate_draw (O,) each object's
-  uniform for the still gate under `still_gate_draw`, drawn once per rollout."""
+  (`execution.logged_accel`): the jerk limit's reference."""
   controlled: Array
   plan: Array
   path: Array
@@ -42,7 +41,6 @@ class PlanState:
   noise: Array
   road: RoadField
   accel: Array
-  gate_draw: Array
 
 
 def step(state: SimulatorState, models: Models, cfg: Config, rng: Array,
@@ -60,15 +58,12 @@ def step(state: SimulatorState, models: Models, cfg: Config, rng: Array,
   their speed and heading (zero action). Under guidance and with sample
   selection's map term (the default), pass road=`road_for(state, policy)`
   made once per scenario to avoid rebuilding the road field (about 1 s) at
-  every call. A stateless call always plans cold (no warm start) and draws the
-  still gate's uniforms anew (`still_gate_draw`); the filters on the executed
-  action apply (they read the state)."""
+  every call. A stateless call always plans cold (no warm start); the filters
+  on the executed action apply (they read the state)."""
   controlled = controlled_or_default(state, cfg, controlled)
   road = planning.road_for(state, policy) if road is None else road
   adversary = planning.pursuer_of(state, cfg, policy.guidance)
-  num_objects = state.object_metadata.ids.shape[-1]
-  scene = planning.encode(models, state, cfg, policy, controlled,
-                          jax.random.uniform(jax.random.fold_in(rng, 2), (num_objects,)))
+  scene = planning.encode(models, state, cfg, policy, controlled)
   y0 = planning.sample(models, scene, cfg, policy, rng, adversary, road)               # (S, A, d)
   y0 = selection.select(y0, models, scene, cfg, policy, adversary, road)               # (1, A, d)
   plan, planned, path = planning.decode(y0, models, scene, state, cfg, policy)         # (O, T, 2)
@@ -93,15 +88,14 @@ def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
                      adversary=planning.pursuer_of(state, cfg, policy.guidance),
                      noise=jax.random.normal(jax.random.fold_in(rng, 1), (num_objects, cfg.diffusion.latent_dim)),
                      road=planning.road_for(state, policy),
-                     accel=execution.logged_accel(state, cfg.kinematics.dt),
-                     gate_draw=jax.random.uniform(jax.random.fold_in(rng, 2), (num_objects,)))
+                     accel=execution.logged_accel(state, cfg.kinematics.dt))
 
   def replan(models, state, ps: PlanState, rng):
     """A new plan (O, T, 2), which objects have one (O,) and its path (O, T, 2), blended with
     the last plan (temporal ensemble)."""
     noise = ps.noise if policy.consistent_noise else None
     warm = _warm_start(ps) if policy.warm_start else None
-    scene = planning.encode(models, state, cfg, policy, ps.controlled, ps.gate_draw)
+    scene = planning.encode(models, state, cfg, policy, ps.controlled)
     y0 = planning.sample(models, scene, cfg, policy, rng, ps.adversary, ps.road, noise, warm)   # (S, A, d)
     y0 = selection.select(y0, models, scene, cfg, policy, ps.adversary, ps.road)               # (1, A, d)
     plan, plan_valid, path = planning.decode(y0, models, scene, state, cfg, policy)

@@ -54,11 +54,6 @@ class PolicyConfig:
     still_gate: (seconds, metres): an agent slower than START_GATE_SPEED whose proposals,
       weighted by probability, carry it less than `metres` within `seconds` is stopped and held
       (parked cars stay parked; a car queued at a green light is let go); (0, 0) is off.
-    still_gate_draw: instead of the probability-weighted distance, each rollout draws one
-      u ~ U(0, 1) per agent at its start, and the gate lets an agent go once the probability
-      of its proposals that carry it `metres` within `seconds` exceeds u: over many rollouts
-      an agent starts as often as its proposals say, where the weighted distance decides the
-      same in every rollout (WOSAC scores the spread of 32 rollouts).
     max_curvature: 1/m: a vehicle or cyclist turns at most this much per metre travelled, so
       a parked car does not spin in place; 0 is off. Both chosen on the real val scenes
       (docs/RESULTS.md, "Table I (real WOMD val)"; CHANGELOG.md, v8 real-traffic defaults).
@@ -87,7 +82,6 @@ class PolicyConfig:
   stop_hold: bool = True
   max_curvature: float = 0.3
   still_gate: tuple[float, float] = (2.0, 1.0)
-  still_gate_draw: bool = False
 
 
 EXECUTE = ("actions", "track")

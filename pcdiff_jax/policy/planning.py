@@ -48,19 +48,15 @@ class WarmStart:
 
 
 def encode(models: Models, state: SimulatorState, cfg: Config, policy: PolicyConfig,
-           controlled: Optional[Array] = None, gate_draw: Optional[Array] = None) -> Encoded:
+           controlled: Optional[Array] = None) -> Encoded:
   """The scene at its current step, encoded: controlled (O,) objects are modelled first after
-  the SDC, whatever their distance. gate_draw (O,): each object's uniform of the still gate
-  under `still_gate_draw`."""
+  the SDC, whatever their distance."""
   feats = features_lib.scene_features(state, cfg.features, keep=controlled)
   batched = jax.tree_util.tree_map(lambda a: a[None], feats)
   cond = planner.condition(models.encoder, models.stats, batched, cfg)
   hold = None
   if policy.still_gate[0] > 0:
-    draw = None
-    if policy.still_gate_draw:
-      draw = gate_draw[feats.agent_index][None]                                         # (1, A)
-    hold = still_agents(cond, models.stats, cfg, *policy.still_gate, draw=draw)[0]       # (A,)
+    hold = still_agents(cond, models.stats, cfg, *policy.still_gate)[0]                  # (A,)
   if policy.prior_centre == "top1":
     cond = planner.centre_on_top_mode(cond)
   if policy.select_samples > 1:   # S candidate plans as a batch of S copies of the scene
@@ -172,24 +168,19 @@ def warm_centres(cond: planner.Conditioning, previous: Array, has: Array) -> Arr
 
 
 def still_agents(cond: planner.Conditioning, stats: latent.LatentStats, cfg: Config, seconds: float,
-                 metres: float, draw: Optional[Array] = None) -> Array:
+                 metres: float) -> Array:
   """(..., A) the agents the scene keeps still (`PolicyConfig.still_gate`): slower
   than START_GATE_SPEED and carried less than `metres` within `seconds` by their
-  proposals, each proposal's distance weighted by its probability; or, given
-  draw (..., A) uniforms (`still_gate_draw`), whose proposals that go that far
-  have a probability of at most draw. The encoder's proposals read the map, the
-  lights and the other agents, so a car queued at a light that turns green is
-  let go while a parked one is not."""
+  proposals, each proposal's distance weighted by its probability. The
+  encoder's proposals read the map, the lights and the other agents, so a car
+  queued at a light that turns green is let go while a parked one is not."""
   steps = max(1, min(round(seconds / cfg.kinematics.dt), cfg.encoder.horizon))
   actions = dynamics.clip_action(latent.decode(cond.proposals, stats)[..., :steps, :], cfg.kinematics)
   speed = jnp.broadcast_to(cond.speed[..., None], cond.proposals.shape[:-1])             # (..., A, K)
   states = dynamics.rollout(latent.initial_states(speed), actions, cfg.kinematics.dt)    # (..., A, K, steps, 4)
   travelled = jnp.max(jnp.hypot(states[..., 0], states[..., 1]), axis=-1)                # (..., A, K)
-  if draw is None:
-    stays = jnp.sum(cond.probs * travelled, axis=-1) < metres
-  else:
-    stays = jnp.sum(cond.probs * (travelled >= metres), axis=-1) <= draw
-  return (jnp.abs(cond.speed) < START_GATE_SPEED) & stays
+  expected = jnp.sum(cond.probs * travelled, axis=-1)
+  return (jnp.abs(cond.speed) < START_GATE_SPEED) & (expected < metres)
 
 
 def stop_plan(speed: Array, horizon: int, cfg: Config) -> Array:
