@@ -213,7 +213,7 @@ class Simulator:
 
   def __init__(self, cfg: WosacConfig):
     self.cfg = cfg
-    self.learned = self.run_alone = None
+    self.learned = None
     self._by_cap: dict[int, _LearnedRuns] = {}
     if cfg.eval.method == LOG_REPLAY:
       cfg.validate()
@@ -225,8 +225,7 @@ class Simulator:
       return
     cfg.validate()
     full = self._runs_at(cfg.eval.metrics.max_reactive_agents)
-    self.learned, self.run, self.params, self.run_alone, self.params_alone = (
-        full.learned, full.run, full.params, full.run_alone, full.params_alone)
+    self.learned, self.run, self.params = full.learned, full.run, full.params
 
   def _runs_at(self, cap: int) -> _LearnedRuns:
     """The learned method's closed loops with `cap` agents besides the SDC, built once."""
