@@ -15,7 +15,7 @@ import os
 import shutil
 from typing import Optional
 
-DEFAULT_NAME = "pcdiff-cpu-v8"
+DEFAULT_NAME = "pcdiff-cpu-v10"
 _STAGES = ("encoder", "diffusion")
 _OPTIONAL_STAGES = ("simpl_ar",)   # encoder_stage.SIMPL_AR_DIR: copied when the workdir has it
 STAGES = ("encoder", "diffusion", "simpl-ar")

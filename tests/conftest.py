@@ -137,3 +137,15 @@ def scene():
 def stack_states(states):
   return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *states)
 
+
+
+# The files with the most compile work, longest first: `make test` hands whole files to its two
+# workers in collection order (`--dist loadfile`), so a long file collected last would run alone
+# at the end (docs/DEVELOPING.md, "Testing").
+LONGEST_FIRST = ("test_trained_pipeline.py", "test_policy.py", "test_notebook.py", "test_wosac.py",
+                 "test_policy_package.py")
+
+
+def pytest_collection_modifyitems(config, items):
+  rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+  items.sort(key=lambda item: rank.get(item.path.name, len(LONGEST_FIRST)))   # stable: file order kept
