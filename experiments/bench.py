@@ -469,7 +469,8 @@ def main(argv=None) -> int:
   p.add_argument("--device-train-steps", type=int, default=5, help="devices: timed training steps")
   p.add_argument("--device-batch", type=int, default=4, help="devices: scenes per closed-loop call")
   p.add_argument("--device-rollout-steps", type=int, default=80, help="devices: closed-loop steps")
-  p.add_argument("--wosac-checkpoint", default="checkpoints/pcdiff-cpu-v10", help="wosac: the learned model")
+  p.add_argument("--wosac-checkpoint", default=None,
+                 help="wosac: the learned model (default: the shipped one, pcdiff_jax.shipped.checkpoint_dir())")
   p.add_argument("--wosac-scenes", type=int, default=4, help="wosac: the first N scenes of --scenarios")
   p.add_argument("--wosac-rollouts", type=int, default=32, help="wosac: rollouts per scene (one jitted call)")
   p.add_argument("--sections", nargs="+", default=[s for s in SECTIONS if s not in ("devices", "wosac")],
@@ -508,7 +509,9 @@ def main(argv=None) -> int:
                                        args.device_train_steps, args.device_batch, args.device_rollout_steps,
                                        args.repeats)
   if "wosac" in args.sections:
-    results["wosac_plans"] = bench_wosac_plans(args.scenarios, args.wosac_checkpoint, args.wosac_scenes,
+    from pcdiff_jax import shipped
+    checkpoint = args.wosac_checkpoint or shipped.checkpoint_dir()
+    results["wosac_plans"] = bench_wosac_plans(args.scenarios, checkpoint, args.wosac_scenes,
                                                args.wosac_rollouts)
   print(json.dumps(results, indent=2))
   if args.json:

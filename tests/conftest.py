@@ -138,7 +138,6 @@ def stack_states(states):
   return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *states)
 
 
-
 # The files with the most compile work, longest first: `make test` hands whole files to its two
 # workers in collection order (`--dist loadfile`), so a long file collected last would run alone
 # at the end (docs/DEVELOPING.md, "Testing").
