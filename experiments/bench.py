@@ -144,19 +144,34 @@ def _config_of(preset: str):
   return get_config(preset)
 
 
+_MODELS: dict = {}
+
+
 def _policy_models(state, cfg):
-  """Untrained Models for cfg on one scene (random orthonormal latent basis)."""
+  """Untrained Models for cfg (random orthonormal latent basis), initialised on
+  one scene in one jitted call and kept per cfg: built op by op for every row,
+  the initialisation took longer than the rows (a minute each, `paper` preset).
+  Speed does not depend on the weights' values (docs/DEVELOPING.md)."""
+  if cfg in _MODELS:
+    return _MODELS[cfg]
   from pcdiff_jax.model import denoiser, encoder, features, latent, planner
-  feats = features.scene_features(state, cfg.features)
-  enc = encoder.init(jax.random.PRNGKey(0), feats, cfg.encoder)
   d, horizon = cfg.diffusion.latent_dim, cfg.encoder.horizon
   basis, _ = np.linalg.qr(np.random.default_rng(0).normal(size=(2 * horizon, d)))
   stats = latent.placeholder(horizon, d).replace(components=jax.numpy.asarray(basis, np.float32))
-  batched = jax.tree_util.tree_map(lambda a: a[None], feats)
-  cond = planner.condition(enc, stats, batched, cfg)
-  one = jax.tree_util.tree_map(lambda a: a[0], cond.inputs)
-  den = denoiser.init(jax.random.PRNGKey(1), cond.mu[0], jax.numpy.int32(0), one, cfg.diffusion.denoiser)
-  return planner.Models(encoder=enc, denoiser=den, stats=stats)
+
+  @jax.jit
+  def build(s):
+    feats = features.scene_features(s, cfg.features)
+    enc = encoder.init(jax.random.PRNGKey(0), feats, cfg.encoder)
+    batched = jax.tree_util.tree_map(lambda a: a[None], feats)
+    cond = planner.condition(enc, stats, batched, cfg)
+    one = jax.tree_util.tree_map(lambda a: a[0], cond.inputs)
+    return enc, denoiser.init(jax.random.PRNGKey(1), cond.mu[0], jax.numpy.int32(0), one,
+                              cfg.diffusion.denoiser)
+
+  enc, den = build(state)
+  _MODELS[cfg] = planner.Models(encoder=enc, denoiser=den, stats=stats)
+  return _MODELS[cfg]
 
 
 def _compiled_ms(fn, args, repeats: int) -> dict:
@@ -366,7 +381,7 @@ def bench_devices(path: str, preset: str, counts: list[int], train_steps: int, r
   batch_size = -(-cfg.encoder_train.batch_size // max(counts)) * max(counts)
   one = jax.jit(lambda s: data_lib.example_at(s, 10, cfg.features, cfg.encoder.horizon))(state)
   examples = jax.tree_util.tree_map(lambda a: np.repeat(np.asarray(a)[None], batch_size, 0), one)
-  params = jax.device_get(encoder_stage.init_params(cfg, examples, 0))
+  params = jax.device_get(jax.jit(lambda ex: encoder_stage.init_params(cfg, ex, 0))(examples))
   tx = trainer.make_optimizer(cfg.encoder_train)
   train_rows = []
   for n in counts:
