@@ -354,6 +354,19 @@ def test_sample_selection_keeps_the_least_colliding_joint_plan(models):
   coll = np.asarray(candidates(road, 3)[0])
   choice = np.asarray(jnp.argmax(jnp.all(select(road, 0.0, 3) == y0, -1), 0))
   assert int(choice[0]) == 0 and overlaps(choice) <= overlaps(np.zeros_like(choice))
+  # select_held_still: a held agent is scored standing at its start in every sample, and the
+  # others' choices carry the same guarantee against that.
+  held = jnp.arange(feats.agent_valid.shape[0]) == 1
+  states = planner.decode_states(models.stats, cond, y0, CFG)[..., :30, :]
+  states = jnp.where(held[None, :, None, None], 0.0, states)
+  xy, yaw = planner.to_scene(states, batched)
+  coll = np.asarray(joint_selection.collision_counts(jnp.moveaxis(xy, 0, 1), jnp.moveaxis(yaw, 0, 1),
+                                                     *planner.agent_size(feats), feats.agent_valid))
+  chosen_held = jax.jit(lambda road: policy.select_sample(y0, models, cond, batched, CFG, 30, keep, road,
+                                                          0.0, g, 1, 0, held))(road)
+  choice = np.asarray(jnp.argmax(jnp.all(chosen_held == y0, -1), 0))
+  assert int(choice[0]) == 0 and overlaps(choice) <= overlaps(np.zeros_like(choice))
+  assert np.all(coll[1] == coll[1][:1])          # the held agent's samples are one and the same
   # Equally likely candidates without overlaps: everyone keeps sample 0.
   free = joint_selection.iterated_conditional_modes(jnp.zeros((4, 3)), jnp.zeros((4, 3, 4, 3)),
                                                     jnp.ones(4, bool), 1.0, 2, jnp.arange(4))

@@ -37,21 +37,24 @@ def select(y0: Array, models: Models, scene, cfg: Config, policy: PolicyConfig, 
     road_here = jax.tree_util.tree_map(lambda a: a[None], road_here)   # a batch of 1 for map_cost
   return select_sample(y0, models, scene.cond, scene.batched, cfg, policy.select_lookahead, keep,
                        road_here, policy.select_map_weight, policy.guidance, policy.select_stride,
-                       policy.select_neighbours)
+                       policy.select_neighbours, scene.hold if policy.select_held_still else None)
 
 
 def select_sample(y0: Array, models: Models, cond: planner.Conditioning, batched, cfg: Config,
                   lookahead: int, keep: Array, road: Optional[RoadField] = None,
                   map_weight: float = 0.0,
                   guidance: guidance_lib.GuidanceConfig = guidance_lib.GuidanceConfig(),
-                  stride: int = 1, neighbours: int = 0) -> Array:
+                  stride: int = 1, neighbours: int = 0, held: Optional[Array] = None) -> Array:
   """(1, A, d): per agent, one of the S joint samples y0 (S, A, d) of one scene
   (cond, batched: that scene repeated S times) such that the chosen plans
   overlap least over their first `lookahead` steps, every `stride`-th (`PolicyConfig.select_samples`),
   plus map_weight x each sample's J_map on `road` (the scene's field in the
   scene frame) when map_weight > 0; agents where keep (A,) keep sample 0. neighbours > 0: overlaps against each
-  agent's that many nearest agents only (`PolicyConfig.select_neighbours`)."""
+  agent's that many nearest agents only (`PolicyConfig.select_neighbours`). held (A,): agents
+  the still gate stops, scored where they will be (standing at their start) in every sample."""
   states = planner.decode_states(models.stats, cond, y0, cfg)[..., :lookahead:stride, :]   # (S, A, L, 4)
+  if held is not None:
+    states = jnp.where(held[None, :, None, None], 0.0, states)
   xy, yaw = planner.to_scene(states, batched)
   feats = jax.tree_util.tree_map(lambda a: a[0], batched)
   length, width = planner.agent_size(feats)
