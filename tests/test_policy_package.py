@@ -31,7 +31,9 @@ SETTINGS = {
     # The defaults the reference was recorded with (the still gate and the curvature bound came
     # on by default after it; "gates" covers them).
     "defaults": policy.PolicyConfig(still_gate=(0.0, 0.0), max_curvature=0.0),
-    "gates": policy.PolicyConfig(still_gate=(2.0, 2.0), max_curvature=0.05),
+    "gates": policy.PolicyConfig(still_gate=(2.0, 2.0), max_curvature=0.05, select_held_still=False),
+    # The selection scoring held agents standing still (the default after "gates" was recorded).
+    "held_still": policy.PolicyConfig(still_gate=(2.0, 2.0), max_curvature=0.05),
     "track": policy.PolicyConfig(execute="track", consistent_noise=True, prior_centre="top1",
                                  replan_every=2, select_samples=2, jerk_limit=(1.0, 0.0),
                                  still_gate=(0.0, 0.0), max_curvature=0.0),
