@@ -9,7 +9,7 @@
    MODEL_CARD.md) or, with --train, trains stage 1 (scene encoder) and
    stage 2 (PCA latent + denoiser) with --config (OUT/model),
 3. rolls out ours, SIMPL-AR, IDM and constant velocity in closed loop on
-   the val scenes, 80 steps at 10 Hz (OUT/eval/METHOD: metrics, GIFs),
+   the val scenes, --num-steps (80) steps at 10 Hz (OUT/eval/METHOD: metrics, GIFs),
 4. prints the metrics table and writes it to OUT/table.md,
 5. rolls out log replay, ours and the baselines on the first --num-real real
    WOMD val scenes when they are there (`--real-scenes`, default
@@ -60,6 +60,7 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--num-val", type=int, default=16, help="synthetic val scenes (the closed-loop set)")
   p.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
   p.add_argument("--batch-size", type=int, default=4, help="scenarios per jitted closed-loop call")
+  p.add_argument("--num-steps", type=int, default=80, help="closed-loop steps at 10 Hz (80: WOMD's 8 s)")
   p.add_argument("--real", default=make_data.REAL_SAMPLE,
                  help="a real WOMD record to run ours on at the end (skipped when absent)")
   p.add_argument("--real-scenes", default=REAL_VAL,
@@ -75,6 +76,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.error("--train and --checkpoint exclude each other")
   if args.max_agents is not None and args.max_agents < 1:
     p.error("--max-agents must be >= 1")
+  if not 1 <= args.num_steps <= 80:
+    p.error("--num-steps must be in [1, 80] (WOMD has 80 future steps)")
   return args
 
 
@@ -127,7 +130,7 @@ def main(argv=None) -> int:
   for method in args.methods:
     argv = ["--scenarios", os.path.join(data, "val-*"), "--method", method,
             "--out", os.path.join(args.out, "eval", method), "--batch-size", str(args.batch_size),
-            "--max-agents", str(max_agents), "--gifs", "1"]
+            "--max-agents", str(max_agents), "--gifs", "1", "--num-steps", str(args.num_steps)]
     if method in ("pcdiff", "simpl-ar"):
       argv += ["--checkpoint", model, "--ddim-steps", "5"]
     if method == "pcdiff" and not args.warm_start:
@@ -138,7 +141,7 @@ def main(argv=None) -> int:
   for method in real_methods if real else ():
     argv = ["--scenarios", args.real_scenes, "--max-scenarios", str(args.num_real), "--method", method,
             "--out", os.path.join(args.out, "eval", "real", method), "--batch-size", str(args.batch_size),
-            "--max-agents", str(max_agents), "--gifs", str(args.num_real)]
+            "--max-agents", str(max_agents), "--gifs", str(args.num_real), "--num-steps", str(args.num_steps)]
     if method in ("pcdiff", "simpl-ar"):
       argv += ["--checkpoint", model]
     _run(f"closed loop on real WOMD val scenes: {method}", rollout.main, argv + quiet)
@@ -146,10 +149,10 @@ def main(argv=None) -> int:
     _run("closed loop on the real WOMD sample: pcdiff", rollout.main, [
         "--scenarios", args.real, "--method", "pcdiff", "--checkpoint", model,
         "--out", os.path.join(args.out, "eval", "real-pcdiff"), "--max-agents", str(max_agents),
-        "--gifs", "1"] + ([] if args.warm_start else ["--no-warm-start"]) + quiet)
+        "--gifs", "1", "--num-steps", str(args.num_steps)] + ([] if args.warm_start else ["--no-warm-start"]) + quiet)
   text = table(args.out, args.methods)
   minutes = (time.perf_counter() - t0) / 60
-  header = (f"# Demo: {args.num_val} synthetic val scenes, 80 closed-loop steps at 10 Hz, up to "
+  header = (f"# Demo: {args.num_val} synthetic val scenes, {args.num_steps} closed-loop steps at 10 Hz, up to "
             f"{max_agents} reactive agents, the SDC replays its log\n\n")
   if real:
     header_real = (f"\n# The first {args.num_real} real WOMD val scenes ({args.real_scenes}), the same "

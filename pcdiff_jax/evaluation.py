@@ -328,7 +328,8 @@ def evaluate(scenarios: Sequence[str] | str, out_dir: str, cfg: EvalConfig,
           per_scenario.flush()
           if gifs_done < cfg.gifs:
             first = jax.tree_util.tree_map(lambda a: a[i * n_roll:i * n_roll + 1], final)
-            _write_gif(first, 0, meta.scenario_id[i], out_dir, cfg.init_steps - 1)
+            _write_gif(first, 0, meta.scenario_id[i], out_dir, cfg.init_steps - 1,
+                       cfg.init_steps - 1 + cfg.num_steps)
             gifs_done += 1
         if seed == 0:
           num_done += n
@@ -379,8 +380,10 @@ def evaluate(scenarios: Sequence[str] | str, out_dir: str, cfg: EvalConfig,
   return summary
 
 
-def _write_gif(final_state, index: int, scenario_id: str, out_dir: str, start: int) -> None:
+def _write_gif(final_state, index: int, scenario_id: str, out_dir: str, start: int, stop: int) -> None:
+  """The GIF of rollout `index`: steps start..stop, the simulated ones (later steps were never run)."""
   from pcdiff_jax import viz
   one = jax.tree_util.tree_map(lambda a: np.asarray(a[index]), final_state)
   os.makedirs(os.path.join(out_dir, "gifs"), exist_ok=True)
-  viz.render_rollout_gif(one, os.path.join(out_dir, "gifs", f"{scenario_id}.gif"), start=start)
+  viz.render_rollout_gif(one, os.path.join(out_dir, "gifs", f"{scenario_id}.gif"), start=start,
+                         stop=min(stop, one.sim_trajectory.x.shape[-1] - 1))

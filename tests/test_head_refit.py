@@ -36,8 +36,10 @@ def params(examples):
 
 def test_head_on_cached_trunk_outputs_is_the_encoders(params, examples):
   trunk = head_refit.trunk_outputs(params, CFG, examples, batch_size=4)
-  traj, logits = head_refit.apply_head(head_refit.head_params(params), CFG, trunk)
-  out = encoder.apply(params, jax.tree_util.tree_map(np.asarray, examples.feats), CFG.encoder)
+  # Jitted: eager, the encoder would compile op by op.
+  traj, logits = jax.jit(lambda h, t: head_refit.apply_head(h, CFG, t))(head_refit.head_params(params), trunk)
+  out = jax.jit(lambda p, f: encoder.apply(p, f, CFG.encoder))(
+      params, jax.tree_util.tree_map(np.asarray, examples.feats))
   valid = np.asarray(out.agent_valid)
   assert valid.sum() >= 6
   np.testing.assert_allclose(np.asarray(traj)[valid], np.asarray(out.trajectories)[valid], atol=1e-3)

@@ -105,7 +105,8 @@ def test_guided_closed_loop_runs_and_changes_the_plans(models):
   finals, ends = {}, {}
   for mode in ("none", "objective", "adversarial"):
     g = GuidanceConfig(mode=mode, eta=0.5, w_pursue=10.0, field_size=64, max_edge_points=512)
-    actor = policy.actor(CFG, policy.PolicyConfig(select_samples=1, ddim_steps=2, guidance=g))
+    # Cold plans: a smaller program (warm starts under guidance: tests/test_controlled_set.py).
+    actor = policy.actor(CFG, policy.PolicyConfig(select_samples=1, ddim_steps=2, warm_start=False, guidance=g))
     ends[mode] = evaluation.make_rollout_fn(actor, cfg)(states, rngs, models)
     finals[mode] = ends[mode].sim_trajectory
     assert bool(jnp.all(jnp.isfinite(finals[mode].x[:, :, 11:14])))
@@ -480,15 +481,15 @@ def test_a_noisy_logged_speed_does_not_force_an_acceleration(models):
   ramp = noisy.sim_trajectory.replace(vel_x=noisy.sim_trajectory.vel_x.at[:, t - 10].add(-30.0))
   assert np.all(np.abs(np.asarray(policy.logged_accel(noisy.replace(sim_trajectory=ramp), dt))) <= 4.0)
   act = policy.actor(CFG, policy.PolicyConfig(select_samples=1, jerk_limit=(1.5, 5.0), still_gate=(0.0, 0.0)))
-  ps = act.init(jax.random.PRNGKey(0), noisy)
+  ps = jax.jit(act.init)(jax.random.PRNGKey(0), noisy)
   np.testing.assert_allclose(np.asarray(ps.accel), trend)
-  out = act.select_action(models, noisy, ps, jax.random.PRNGKey(1))
+  out = jax.jit(act.select_action)(models, noisy, ps, jax.random.PRNGKey(1))   # one program, not op by op
   controlled = np.asarray(out.is_controlled)
   first = np.asarray(out.action.data)[controlled, 0]
   moving = np.asarray(dynamics.states_from_trajectory(noisy.current_sim_trajectory))[controlled, 0, 3] > 0.5
   assert np.all(first[moving] <= 1.5 * dt + 1e-5) and np.all(first[moving] >= -5.0 * dt - 1e-5), first
   np.testing.assert_allclose(np.asarray(out.actor_state.accel)[controlled], first, atol=1e-6)
   # The stateless step reads the state's one-step estimate, bounded by the model's limit.
-  action, _ = policy.step(noisy, models, CFG, jax.random.PRNGKey(1),
-                          policy.PolicyConfig(select_samples=1, still_gate=(0.0, 0.0)))
+  action, _ = jax.jit(lambda s, r: policy.step(s, models, CFG, r, policy.PolicyConfig(
+      select_samples=1, still_gate=(0.0, 0.0))))(noisy, jax.random.PRNGKey(1))
   assert np.all(np.abs(np.asarray(action.data)[:, 0]) <= CFG.kinematics.max_accel + 1e-5)

@@ -144,7 +144,9 @@ def test_finetune_round_moves_both_stages_and_keeps_the_latent(tiny_trained, wom
 def test_finetune_simpl_ar_trains_its_own_encoder_only(tiny_trained, womd_path, tmp_path, capsys):
   """`--policy simpl-ar`: a CAT-K round on SIMPL-AR's own closed loop moves
   only the baseline's encoder (WORKDIR/simpl_ar, which SIMPL-AR, pretrained
-  and export then read); the diffusion policy and its encoder stay --from's."""
+  and export then read); the diffusion policy and its encoder stay --from's.
+  `--encoder-from` then conditions ours on that (lane-aware) encoder, with the
+  first run's examples joining its round (`--extra-on-policy`)."""
   import pcdiff_jax
   from experiments import finetune
   from pcdiff_jax import evaluation, shipped
@@ -152,41 +154,39 @@ def test_finetune_simpl_ar_trains_its_own_encoder_only(tiny_trained, womd_path, 
                           zip(jax.tree_util.tree_leaves(x), jax.tree_util.tree_leaves(y)))
   source = tiny_trained["shipped"]
   models, _ = pcdiff_jax.pretrained(path=source)
+  cache = os.path.join(tiny_trained["work"], "cache")
   ft = str(tmp_path / "sa")
   argv = ["--policy", "simpl-ar", "--from", source, "--data", womd_path, "--workdir", ft,
-          "--cache-dir", os.path.join(tiny_trained["work"], "cache"), "--scenes", "1",
-          "--encoder-steps", "1", "--times", "12", "--max-agents", "8", "--batch-size", "2", "--no-progress"]
+          "--cache-dir", cache, "--scenes", "1", "--encoder-steps", "1", "--times", "12",
+          "--max-agents", "8", "--batch-size", "2", "--no-progress", "--lane-inputs"]
   assert finetune.main(argv) == 0
   tuned, _ = pcdiff_jax.pretrained(path=ft)
   assert same(tuned.denoiser, models.denoiser) and same(tuned.encoder, models.encoder)
-  baseline, _ = pcdiff_jax.pretrained(path=ft, stage="simpl-ar")
-  assert not same(baseline, models.encoder)
+  baseline, baseline_cfg = pcdiff_jax.pretrained(path=ft, stage="simpl-ar")
+  assert baseline_cfg.encoder.lane_inputs and "in_lane" in baseline["params"]
   assert same(pcdiff_jax.pretrained(path=source, stage="simpl-ar")[0], models.encoder)  # none of its own
   _, params = evaluation.make_actor(evaluation.EvalConfig(method="simpl-ar", checkpoint=ft))
   assert same(params, baseline)
   out = str(tmp_path / "export")
   assert set(shipped.export(ft, out)) == {"encoder", "diffusion", "simpl_ar"}
   assert same(pcdiff_jax.pretrained(path=out, stage="simpl-ar")[0], baseline)
-  # Examples of an earlier run join every round's; a file that is not one is refused by name.
-  extra = os.path.join(ft, "round-0", "on_policy.npz")
-  again = argv[:argv.index("--workdir") + 1] + [str(tmp_path / "sa2")] + argv[argv.index("--workdir") + 2:]
-  assert finetune.main(again + ["--extra-on-policy", extra, "--lane-inputs"]) == 0
-  lanes, lanes_cfg = pcdiff_jax.pretrained(path=str(tmp_path / "sa2"), stage="simpl-ar")
-  assert lanes_cfg.encoder.lane_inputs and "in_lane" in lanes["params"]
   # --encoder-from (v8): ours conditioned on that lane-aware encoder; its round re-trains the
   # denoiser on it, and the result's encoder (policy and stage folder) is that encoder.
+  # Examples of an earlier run join every round's; a file that is not one is refused by name.
+  extra = os.path.join(ft, "round-0", "on_policy.npz")
   swapped = str(tmp_path / "swap")
-  assert finetune.main(["--from", source, "--encoder-from", str(tmp_path / "sa2"), "--data", womd_path,
-                        "--workdir", swapped, "--cache-dir", os.path.join(tiny_trained["work"], "cache"),
-                        "--scenes", "1", "--steps", "1", "--times", "12", "--max-agents", "8",
-                        "--batch-size", "2", "--no-progress"]) == 0
+  swap = ["--from", source, "--encoder-from", ft, "--data", womd_path, "--workdir", swapped,
+          "--cache-dir", cache, "--scenes", "1", "--steps", "1", "--times", "12", "--max-agents", "8",
+          "--batch-size", "2", "--no-progress"]
+  assert finetune.main(swap + ["--extra-on-policy", extra]) == 0
   ours, ours_cfg = pcdiff_jax.pretrained(path=swapped)
-  assert ours_cfg.encoder.lane_inputs and same(ours.encoder, lanes)
+  assert ours_cfg.encoder.lane_inputs and same(ours.encoder, baseline)
   assert not same(ours.denoiser, models.denoiser)
-  assert same(pcdiff_jax.pretrained(path=swapped, stage="encoder")[0], lanes)
+  assert same(pcdiff_jax.pretrained(path=swapped, stage="encoder")[0], baseline)
   bad = tmp_path / "bad.npz"
   bad.write_text("not an archive")
-  assert finetune.main(again + ["--extra-on-policy", str(bad)]) == 2
+  assert finetune.main(swap[:swap.index("--workdir") + 1] + [str(tmp_path / "sa3")]
+                       + swap[swap.index("--workdir") + 2:] + ["--extra-on-policy", str(bad)]) == 2
   assert "bad.npz" in capsys.readouterr().err
   at = argv.index("--encoder-steps")
   with pytest.raises(SystemExit):
@@ -220,7 +220,8 @@ def test_demo_pipeline_runs_end_to_end(tiny_trained, tmp_path):
   out = str(tmp_path / "demo")
   model = tiny_trained["shipped"]                   # a shipped folder, as `make demo` loads
   code = demo.main(["--out", out, "--checkpoint", model, "--num-val", "2", "--methods", "pcdiff", "cv",
-                    "--batch-size", "2", "--real", "/nonexistent", "--num-real", "1", "--no-progress"])
+                    "--batch-size", "2", "--real", "/nonexistent", "--num-real", "1", "--num-steps", "10",
+                    "--no-progress"])
   assert code == 0
   for method in ("pcdiff", "cv"):
     with open(os.path.join(out, "eval", method, "metrics.json")) as f:
