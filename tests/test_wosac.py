@@ -334,6 +334,18 @@ def test_the_official_evaluator_scores_log_replay_on_the_real_record(womd_path, 
   assert scene["buckets"]["realism_meta_metric"] == pytest.approx(0.6255, abs=2e-3)   # measured once
   from pcdiff_jax import wosac_scoring
   assert set(wosac_scoring.LIKELIHOODS) <= set(scene["metrics"])
+  # --kinematic: the same four likelihoods in a second; log replay visits every bin of its own.
+  import subprocess
+  env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+  run = subprocess.run([wosac_scoring.evaluator_python(), wosac_scoring.WORKER, "--kinematic",
+                        "--submission", out, "--scenarios",
+                        *wosac_scoring.scenario_files(womd_path, str(tmp_path))],
+                       capture_output=True, text=True, env=env, cwd=wosac_scoring.REPO)
+  assert run.returncode == 0, run.stderr[-2000:]
+  kinematic = json.loads(run.stdout.splitlines()[0])["kinematic"]
+  for name in ("linear_speed", "linear_acceleration", "angular_speed", "angular_acceleration"):
+    assert kinematic[f"{name}_likelihood"] == pytest.approx(scene["metrics"][f"{name}_likelihood"], abs=1e-5)
+    assert kinematic[f"{name}_unvisited"] == 0.0
 
 
 def test_the_fallback_is_left_out_only_where_it_drives_nobody(tiny_models):
