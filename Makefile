@@ -7,7 +7,7 @@ DEMO_OUT ?= runs/demo
 PYTEST_WORKERS ?= 2
 # Byte-code caching on even where the environment turns it off: the install skips byte-compiling
 # (below), so without it every process (each test worker, the notebook's kernel) would compile
-# TensorFlow's and JAX's sources again on import (docs/DEVELOPING.md, "Testing").
+# TensorFlow's and JAX's sources again on import.
 export PYTHONDONTWRITEBYTECODE :=
 
 .PHONY: install lock demo test notebook bench data train clean wosac-env

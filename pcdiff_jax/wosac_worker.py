@@ -130,15 +130,12 @@ def main(argv=None) -> int:
       t0 = time.perf_counter()
       try:
         if args.kinematic:
-          line = {"scenario_id": sid, "record": where,
-                  "kinematic": kinematic_likelihoods(config, scenario, rollouts[sid]),
-                  "seconds": time.perf_counter() - t0}
-          print(json.dumps(line), flush=True)
-          continue
-        result = metrics.compute_scenario_metrics_for_bundle(config, scenario, rollouts[sid])
-        buckets = metrics.aggregate_metrics_to_buckets(config, result)
-        line = {"scenario_id": sid, "record": where, "metrics": _metrics_dict(result),
-                "buckets": _metrics_dict(buckets), "seconds": time.perf_counter() - t0}
+          line = {"kinematic": kinematic_likelihoods(config, scenario, rollouts[sid])}
+        else:
+          result = metrics.compute_scenario_metrics_for_bundle(config, scenario, rollouts[sid])
+          buckets = metrics.aggregate_metrics_to_buckets(config, result)
+          line = {"metrics": _metrics_dict(result), "buckets": _metrics_dict(buckets)}
+        line = {"scenario_id": sid, "record": where, **line, "seconds": time.perf_counter() - t0}
       except Exception as err:  # one bad scene is reported and skipped, the others still count
         line = {"scenario_id": sid, "record": where,
                 "error": f"{type(err).__name__}: {err}".strip()[:2000],
