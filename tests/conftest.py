@@ -5,11 +5,18 @@ import dataclasses
 import os
 from pathlib import Path
 
-# Compiles dominate CPU test time. XLA splits each CPU program into parallel codegen parts by
-# default; on 2 cores that two test workers already fill, the split costs more CPU than it
-# saves (a policy step: 12.2 against 16.7 CPU-s to compile). Same code, same numbers.
-os.environ["XLA_FLAGS"] = " ".join(
-    filter(None, [os.environ.get("XLA_FLAGS", ""), "--xla_cpu_parallel_codegen_split_count=1"]))
+# Compiles dominate CPU test time; two XLA CPU settings roughly halve them. XLA splits each CPU
+# program into parallel codegen parts by default: on 2 cores that two test workers already fill,
+# the split costs more CPU than it saves (same code, same numbers). The older loop emitters
+# compile about twice as fast as the fusion emitters but round differently in the last bits, so
+# tests/test_policy_package.py (bit for bit against a recording made with XLA's defaults) runs
+# its rollouts in a fresh interpreter with XLA_DEFAULTS_ENV set, which keeps XLA's defaults.
+XLA_DEFAULTS_ENV = "PCDIFF_TEST_XLA_DEFAULTS"
+# The flags before this file added any (test workers and subprocesses inherit the changed ones).
+DEFAULT_XLA_FLAGS = os.environ.setdefault("PCDIFF_TEST_DEFAULT_XLA_FLAGS", os.environ.get("XLA_FLAGS", ""))
+if os.environ.get(XLA_DEFAULTS_ENV) != "1":
+  os.environ["XLA_FLAGS"] = " ".join(filter(None, [
+      DEFAULT_XLA_FLAGS, "--xla_cpu_parallel_codegen_split_count=1", "--xla_cpu_use_fusion_emitters=false"]))
 
 import jax
 import jax.numpy as jnp

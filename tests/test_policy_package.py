@@ -4,19 +4,23 @@ tests/data/policy_rollouts.npz holds short closed-loop rollouts (and one statele
 It was first recorded with the single-module policy the package replaced (commit e1ec5d4), which
 the package matched bit for bit; it was re-recorded once, when the jerk limit's reference became
 the policy's own executed acceleration (the log's trend over a second at the first step) and the
-kinematic speed the velocity along the heading (CHANGELOG.md). Record it with `PYTHONPATH=.:tests python tests/test_policy_package.py`, and
+kinematic speed the velocity along the heading (CHANGELOG.md). Record it with
+`PCDIFF_TEST_XLA_DEFAULTS=1 PYTHONPATH=.:tests python tests/test_policy_package.py`, and
 only for a change meant to move the numbers.
 """
 from __future__ import annotations
 
+import os
 import pathlib
 import platform
+import subprocess
+import sys
 
 import jax
 import numpy as np
 import pytest
 
-from conftest import build_tiny_models, make_scene
+from conftest import DEFAULT_XLA_FLAGS, XLA_DEFAULTS_ENV, build_tiny_models, make_scene
 from pcdiff_jax import policy
 from pcdiff_jax.config import get_config
 from pcdiff_jax.model import guidance as guidance_lib
@@ -82,23 +86,35 @@ def machine() -> str:
 
 
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="the reference was recorded on CPU")
-def test_rollouts_match_the_recorded_policy(tiny_models):
+def test_rollouts_match_the_recorded_policy(tmp_path):
   """Bit for bit where jax, jaxlib and the CPU's vector units are those of the recording; elsewhere
-  XLA may compile other instructions (FMA, vector widths), so to float32 rounding over 5 steps."""
+  XLA may compile other instructions (FMA, vector widths), so to float32 rounding over 5 steps.
+  The rollouts run in a fresh interpreter with XLA's default code generation (conftest.py's
+  faster compile settings round differently)."""
   if not REFERENCE.exists():
     pytest.skip(f"{REFERENCE} not recorded: run this file's __main__")
   reference = dict(np.load(REFERENCE))
   recorded_on = str(reference.pop("machine"))
-  got = _outputs(tiny_models)
+  out = tmp_path / "got.npz"
+  here = pathlib.Path(__file__).parent
+  env = dict(os.environ, XLA_FLAGS=DEFAULT_XLA_FLAGS, **{XLA_DEFAULTS_ENV: "1"},
+             PYTHONPATH=os.pathsep.join([str(here.parent), str(here), os.environ.get("PYTHONPATH", "")]))
+  run = subprocess.run([sys.executable, __file__, str(out)], env=env, capture_output=True, text=True, timeout=900)
+  assert run.returncode == 0, run.stderr[-3000:]
+  got = dict(np.load(out))
+  ran_on = str(got.pop("machine"))
   assert sorted(got) == sorted(reference)
   for key, want in reference.items():
-    if recorded_on == machine():
+    if recorded_on == ran_on:
       np.testing.assert_array_equal(got[key], want, err_msg=key)
     else:
       np.testing.assert_allclose(got[key], want, rtol=1e-4, atol=1e-4, err_msg=f"{key} (recorded on {recorded_on})")
 
 
-if __name__ == "__main__":
-  REFERENCE.parent.mkdir(exist_ok=True)
-  np.savez_compressed(REFERENCE, machine=np.asarray(machine()), **_outputs(build_tiny_models()))
-  print(f"wrote {REFERENCE} ({REFERENCE.stat().st_size} bytes)")
+if __name__ == "__main__":   # [PATH]: write the outputs there (the test's run), else record REFERENCE
+  if os.environ.get(XLA_DEFAULTS_ENV) != "1":
+    sys.exit(f"set {XLA_DEFAULTS_ENV}=1: the reference is recorded with XLA's default code generation")
+  path = pathlib.Path(sys.argv[1]) if len(sys.argv) > 1 else REFERENCE
+  path.parent.mkdir(exist_ok=True)
+  np.savez_compressed(path, machine=np.asarray(machine()), **_outputs(build_tiny_models()))
+  print(f"wrote {path} ({path.stat().st_size} bytes)")
