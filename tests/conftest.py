@@ -5,12 +5,12 @@ import dataclasses
 import os
 from pathlib import Path
 
-# Compiles dominate CPU test time; two XLA CPU settings roughly halve them. XLA splits each CPU
-# program into parallel codegen parts by default: on 2 cores that two test workers already fill,
-# the split costs more CPU than it saves (same code, same numbers). The older loop emitters
-# compile about twice as fast as the fusion emitters but round differently in the last bits, so
-# tests/test_policy_package.py (bit for bit against a recording made with XLA's defaults) runs
-# its rollouts in a fresh interpreter with XLA_DEFAULTS_ENV set, which keeps XLA's defaults.
+# Compiles dominate CPU test time; two XLA CPU settings cut them (the whole suite: 25 against
+# 31 CPU-min). XLA splits each CPU program into parallel codegen parts by default: on 2 cores
+# that two test workers already fill, the split costs more CPU than it saves (same numbers). The
+# older loop emitters compile faster than the fusion emitters but round differently in the last
+# bits, so tests/test_policy_package.py (bit for bit against a recording made with XLA's
+# defaults) runs its rollouts in a fresh interpreter with XLA_DEFAULTS_ENV set.
 XLA_DEFAULTS_ENV = "PCDIFF_TEST_XLA_DEFAULTS"
 # The flags before this file added any (test workers and subprocesses inherit the changed ones).
 DEFAULT_XLA_FLAGS = os.environ.setdefault("PCDIFF_TEST_DEFAULT_XLA_FLAGS", os.environ.get("XLA_FLAGS", ""))
