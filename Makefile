@@ -39,7 +39,7 @@ demo: install   # scenes -> both training stages -> closed-loop table of ours an
 # (CI's .ci/run calls make test) and in `make test-all`, the whole suite (docs/DEVELOPING.md).
 # PYTEST_ARGS: extra pytest arguments, e.g. PYTEST_ARGS="--durations=30" or "-k policy".
 PYTEST_ARGS ?=
-PYTEST = $(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
+PYTEST = $(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile --no-loadscope-reorder $(PYTEST_ARGS)
 .PHONY: test-all
 test: install
 	$(PYTEST) $(if $(filter true 1,$(CI)),,-m "not slow")
