@@ -148,9 +148,7 @@ def make_rollout_fn(actor: Actor, cfg: EvalConfig, mesh: Optional[Mesh] = None):
   align = cfg.align_headings and cfg.method != "log"
 
   def one(state, rng, params):
-    start = env.reset(state, cfg.init_steps)
-    if align:
-      start = env.align_headings(start)
+    start = env.simulated_start(state, cfg.init_steps, align)
     return env.rollout(start, actor, cfg.num_steps, rng, params=params).final_state
   fn = jax.vmap(one, in_axes=(0, 0, None))
   if mesh is None:

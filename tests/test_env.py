@@ -105,6 +105,20 @@ def test_align_headings_turns_a_sideways_box_to_its_motion_and_keeps_the_rest(sc
   np.testing.assert_allclose(np.asarray(batched.sim_trajectory.yaw)[:, 1, :5], 0.0, atol=1e-6)
 
 
+def test_a_simulated_start_is_reset_then_aligned(scene):
+  """`env.simulated_start` (where evaluation and the fine-tuning rounds start a rollout) is
+  `reset` followed by `align_headings`, or `reset` alone without align."""
+  log = scene.log_trajectory.replace(yaw=scene.log_trajectory.yaw.at[1].set(jnp.pi / 2))
+  s = scene.replace(log_trajectory=log)
+  got = env.simulated_start(s, 5)
+  want = env.align_headings(env.reset(s, 5))
+  np.testing.assert_array_equal(np.asarray(got.sim_trajectory.yaw), np.asarray(want.sim_trajectory.yaw))
+  assert int(got.timestep) == int(want.timestep)
+  raw = env.simulated_start(s, 5, align=False)
+  np.testing.assert_array_equal(np.asarray(raw.sim_trajectory.yaw), np.asarray(env.reset(s, 5).sim_trajectory.yaw))
+  assert float(raw.sim_trajectory.yaw[1, 0]) != float(got.sim_trajectory.yaw[1, 0])
+
+
 def test_the_evaluation_harness_aligns_headings_for_a_simulated_method_only(scene):
   """Constant velocity (the zero action) drives object 1, logged along x with a sideways box, on
   at its logged 8 m/s once aligned (`EvalConfig.align_headings`), and leaves it standing without."""

@@ -64,6 +64,14 @@ def align_headings(state: SimulatorState, min_speed: float = MOTION_HEADING_SPEE
   return state.replace(sim_trajectory=sim.replace(yaw=jnp.where(wrong, motion, sim.yaw)))
 
 
+def simulated_start(state: SimulatorState, init_steps: int, align: bool = True) -> SimulatorState:
+  """Where a simulated method's rollout starts: `reset` at init_steps, then, with align, box
+  headings turned to the motion (`align_headings`). Evaluation and the on-policy rounds of
+  fine-tuning both start here, so a round on real scenes rolls out what evaluation scores."""
+  start = reset(state, init_steps)
+  return align_headings(start) if align else start
+
+
 def step(state: SimulatorState, action: Action, controlled: Array,
          dynamics: Any = DEFAULT_DYNAMICS) -> SimulatorState:
   """Advances the sim trajectory by one step.

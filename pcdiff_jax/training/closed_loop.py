@@ -246,7 +246,7 @@ def make_collect_fn(actor, model_cfg: Config, cfg: OnPolicyConfig, teacher=None)
 
   def one(state, rng, models):
     k_roll, k_teach = jax.random.split(rng)
-    start = env.reset(state, init)
+    start = env.simulated_start(state, init)   # as evaluation starts a simulated method
     final = env.rollout(start, actor, num_steps, k_roll, params=models).final_state
     label = None
     if cfg.targets == "guided":
