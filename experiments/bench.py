@@ -19,7 +19,7 @@ lane-relative inputs (`model.lane_context`), and their computation alone.
 `policy` (the replanning step of ours, weights untrained: speed does not
 depend on their values): the time of one replanning for the reactive agents
 split into encode (features + encoder + proposal latents), sample (DDIM) and
-decode (latent -> actions -> rollout with f); its scaling with the padded
+decode (latent -> actions -> rollout with f), each with XLA's FLOP count (`mflop`); its scaling with the padded
 agent count (8-128), DDIM steps and scenarios per call (vmap); and the
 80-step closed loop as one fused `lax.scan` against a Python loop calling the
 jitted step. These rows plan with one sample (`select_samples=1`); the
@@ -181,7 +181,19 @@ def _compiled_ms(fn, args, repeats: int) -> dict:
   jax.block_until_ready(compiled(*args))
   times = _time(lambda: compiled(*args), repeats)
   return {"ms": 1000 * float(np.median(times)), "ms_std": 1000 * float(np.std(times)),
-          "compile_s": compile_s}
+          "compile_s": compile_s, "mflop": _mflop(compiled)}
+
+
+def _mflop(compiled) -> float | None:
+  """XLA's count of the floating-point operations of one call, in millions: unlike a time, it
+  does not depend on what else the cores run (None where the backend does not report it)."""
+  try:
+    cost = compiled.cost_analysis()
+  except Exception:  # noqa: BLE001 - optional backend feature
+    return None
+  cost = cost[0] if isinstance(cost, (list, tuple)) and cost else cost
+  flops = cost.get("flops") if isinstance(cost, dict) else None
+  return None if flops is None else float(flops) / 1e6
 
 
 def bench_replan_parts(state, cfg, ddim_steps: int, repeats: int) -> dict:

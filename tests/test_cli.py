@@ -190,6 +190,15 @@ def test_bench_times_a_model_folders_config_or_a_preset():
   assert bench._config_of("tiny") == get_config("tiny")
 
 
+def test_bench_rows_count_the_flops_of_a_call():
+  """A timed bench row carries XLA's FLOP count: a 64 x 64 by 64 x 64 matmul is 2 * 64^3."""
+  import jax.numpy as jnp
+  from experiments import bench
+  a = jnp.ones((64, 64), jnp.float32)
+  row = bench._compiled_ms(lambda x: x @ x, (a,), repeats=2)
+  assert row["mflop"] is not None and abs(row["mflop"] - 2 * 64 ** 3 / 1e6) < 0.01, row
+
+
 def test_a_shipped_model_is_read_only_to_every_command(tmp_path, capsys):
   """train, finetune and export refuse to write into a shipped model (a folder with a
   MODEL_CARD.md, or one inside it) before they create anything there."""
