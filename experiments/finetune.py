@@ -93,6 +93,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="real WOMD scenes: their logged examples make --real-share of each batch's logged "
                       "part, and the rounds roll out on them (from real states) instead of --data")
   p.add_argument("--real-share", type=float, default=0.5, help="share of the logged examples from --real-data")
+  p.add_argument("--drop-log-overlaps", action="store_true",
+                 help="leave out of training the agents whose logged box overlaps another within the "
+                      "horizon (real labels of queued and parked cars overlap; synthetic logs never do)")
   p.add_argument("--target-fit", type=float, default=None, metavar="SIGMA",
                  help="m: targets are latents fitted to the logged positions (latent.fit_to_path; "
                       "1 for real logs); default: the model's (the projection)")
@@ -296,7 +299,8 @@ def main(argv=None) -> int:
       from pcdiff_jax.baselines import simpl_ar
       actor = simpl_ar.simpl_ar(run_cfg)
     ocfg = closed_loop.OnPolicyConfig(times=tuple(args.times), max_offset=args.max_offset, mix=args.mix,
-                                      lane_tail=not args.straight_tail, targets=args.targets)
+                                      lane_tail=not args.straight_tail, targets=args.targets,
+                                      drop_log_overlaps=args.drop_log_overlaps)
     teacher = None
     if args.targets == "guided":
       from pcdiff_jax.model import guidance
@@ -316,7 +320,8 @@ def main(argv=None) -> int:
     real, round_files = None, files
     if args.real_data:
       round_files = womd.expand_paths(args.real_data)
-      real, _ = data_lib.load_or_build(round_files, spec, cache, "real", progress=not args.no_progress)
+      real_spec = dataclasses.replace(spec, drop_log_overlaps=args.drop_log_overlaps)
+      real, _ = data_lib.load_or_build(round_files, real_spec, cache, "real", progress=not args.no_progress)
     os.makedirs(args.workdir, exist_ok=True)
     history, gathered = [], [_read_extra(path, logged) for path in _expand(args.extra_on_policy)]
     for r in range(args.rounds):

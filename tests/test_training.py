@@ -83,6 +83,26 @@ def test_targets_are_the_logged_future_in_the_agent_frame(scene_example):
   assert not bool(t.future_valid[0, 4:].any())                      # padded slots
 
 
+def test_agents_whose_log_overlaps_another_box_can_be_left_out_of_training():
+  """Object 0 drives at 10 m/s into object 2, which stands 60 m ahead in its lane (their boxes
+  overlap from about 5.6 s): with drop_log_overlaps both get no valid target step at t = 10,
+  the others keep theirs; without it nothing changes; a horizon that ends before the overlap
+  drops nobody."""
+  state = make_scene(num_steps=91, xs=(0.0, 0.0, 60.0, -30.0), ys=(-2.0, 2.0, -2.0, -2.0))
+  at10 = state.replace(sim_trajectory=state.log_trajectory, timestep=jnp.asarray(10, jnp.int32))
+  idx = jnp.arange(4)
+  assert data_lib.log_overlaps_ahead(at10, idx, 80).tolist() == [True, False, True, False]
+  assert not data_lib.log_overlaps_ahead(at10, idx, 30).any()
+  example = lambda drop: data_lib.example_at(state, 10, CFG.features, 80, drop_log_overlaps=drop)
+  kept, dropped = example(False), example(True)
+  trained = lambda ex: {int(o): bool(v.any()) for o, v, ok in zip(
+      ex.feats.agent_index, ex.targets.future_valid, ex.feats.agent_valid) if ok}
+  assert trained(kept) == {0: True, 1: True, 2: True, 3: True}
+  assert trained(dropped) == {0: False, 1: True, 2: False, 3: True}
+  assert data_lib.cache_key([], data_lib.CacheSpec(CFG.features)) != data_lib.cache_key(
+      [], data_lib.CacheSpec(CFG.features, drop_log_overlaps=True))
+
+
 def test_diffusion_loss_finite_with_masked_agents(scene_example):
   from pcdiff_jax.model import encoder, latent
   from pcdiff_jax.training import diffusion_stage

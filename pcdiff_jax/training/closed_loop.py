@@ -76,7 +76,8 @@ class OnPolicyConfig:
   targets of rounds 0-6 of pcdiff-cpu-v5); targets: "rejoin" (the
   simulated pose re-joins the log, `on_policy_targets`) or "guided" (the
   policy's own plan at that state under objective guidance, `guided_targets`:
-  guidance distilled into the unguided model)."""
+  guidance distilled into the unguided model); drop_log_overlaps: an agent whose
+  log overlaps another box in the horizon is not trained on (`data.log_overlaps_ahead`)."""
   times: tuple[int, ...] = (20, 30, 40, 50)
   rejoin_seconds: float = 3.0
   rejoin_speed: float = 2.0
@@ -85,6 +86,7 @@ class OnPolicyConfig:
   mix: float = 0.5
   lane_tail: bool = True
   targets: str = "rejoin"
+  drop_log_overlaps: bool = False
 
 
 TARGETS = ("rejoin", "guided")
@@ -179,6 +181,8 @@ def on_policy_targets(state: SimulatorState, feats, horizon: int, cfg: OnPolicyC
 
   turned = jnp.abs(geometry.wrap_angle(sim_now[:, 2] - log_now[:, 2]))
   usable = feats.agent_valid & log_valid_now & (offset <= cfg.max_offset) & (turned <= cfg.max_heading)
+  if cfg.drop_log_overlaps:
+    usable = usable & ~data_lib.log_overlaps_ahead(state, idx, horizon)
   valid = valid & usable[:, None]
   origin, yaw0 = sim_now[:, None, :2], sim_now[:, None, 2]
   local_xy = geometry.to_local(xy, origin, yaw0)
