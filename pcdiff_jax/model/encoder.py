@@ -27,7 +27,7 @@ Pipeline (one scene; `apply` maps over leading batch dims):
    s = 1..T, times the control points; yaw = direction of the curve's
    derivative (held at 0, the heading at t, where the curve is stationary).
 
-Edges (item 5 of the issue). `EncoderConfig.num_neighbors = k` gives each token
+Edges. `EncoderConfig.num_neighbors = k` gives each token
 its k nearest tokens (by centre distance, itself included, padded ones
 masked); k = 0 gives all N^2 pairs (broadcasts instead of gathers). Measured
 on the 2-core CPU of these machines (shared with other jobs, so times vary by
