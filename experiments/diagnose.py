@@ -157,6 +157,11 @@ def _drift_policy(args) -> policy.PolicyConfig:
   return pcfg
 
 
+def _mean_or_nan(values: np.ndarray, mask: np.ndarray) -> float:
+  """Mean of values[mask]; NaN when the mask selects nothing."""
+  return float(values[mask].mean()) if mask.any() else float("nan")
+
+
 def drift(args, models, cfg, batch, num) -> dict:
   del models
   pcfg = _drift_policy(args)
@@ -185,10 +190,9 @@ def drift(args, models, cfg, batch, num) -> dict:
                            longitudinal_mean=float(longitudinal[..., t][m].mean()),
                            heading_mean=float(heading[..., t][m].mean()),
                            heading_abs=float(np.abs(heading[..., t][m]).mean()), agents=int(m.sum()),
-                           speed_diff_mean=float(speed_diff[..., t][moving].mean()) if moving.any() else float("nan"),
+                           speed_diff_mean=_mean_or_nan(speed_diff[..., t], moving),
                            moving_agents=int(moving.sum()),
-                           speed_diff_cruising=(float(speed_diff[..., t][cruising].mean())
-                                                if cruising.any() else float("nan")),
+                           speed_diff_cruising=_mean_or_nan(speed_diff[..., t], cruising),
                            cruising_agents=int(cruising.sum()))
     r = rows[f"{sec}s"]
     print(f"| {sec} s | {r['lateral_mean']:+.2f} | {r['lateral_abs']:.2f} | {r['longitudinal_mean']:+.2f} | "

@@ -250,6 +250,7 @@ def test_demo_pipeline_runs_end_to_end(tiny_trained, tmp_path):
   assert drift["1s"]["agents"] > 0 and abs(drift["1s"]["lateral_mean"]) < 1.0   # CV holds its heading for 1 s
   assert {"longitudinal_mean", "speed_diff_mean", "moving_agents", "speed_diff_cruising",
           "cruising_agents"} <= set(drift["8s"])
+  assert drift["8s"]["cruising_agents"] <= drift["8s"]["moving_agents"]   # cruising: moving at the start too
   with open(tmp_path / "parked.json") as f:
     parked = json.load(f)["rows"]
   assert set(parked) == {"top1 proposal", "cold", "warm from top1 @30"}
