@@ -21,6 +21,10 @@ drift         closed-loop rollout of a method; the controlled agents' offset
               2, 4, 6, 8 s; that column includes the log's starters, so even
               constant velocity falls behind it: the cruising column (moving
               in the log at the start and at t) is the closed-loop slow-down.
+              --solo also simulates each evaluated agent moving at the start
+              alone, every other object on its log, and compares its speed
+              with the same agent's in the joint run: a slow-down the solo
+              run keeps is the policy's own, not its reaction to the others.
 parked        open-loop plans for the vehicles parked in the log (path under
               0.5 m over the 8 s after t, valid for half of them): the end
               displacement of `--samples` plans per agent made at t, cold
@@ -162,6 +166,57 @@ def _mean_or_nan(values: np.ndarray, mask: np.ndarray) -> float:
   return float(values[mask].mean()) if mask.any() else float("nan")
 
 
+def _solo_actor(inner: Actor) -> Actor:
+  """`inner`, controlling only the objects marked in objects_of_interest (the rest follow their log)."""
+  def select_action(params, state, actor_state, rng):
+    out = inner.select_action(params, state, actor_state, rng)
+    return out.replace(is_controlled=out.is_controlled & state.object_metadata.objects_of_interest)
+  return Actor(select_action=select_action, init=inner.init, name=f"{inner.name}-solo")
+
+
+def _solo_copies(batch, start: int):
+  """One copy of its scene per evaluated non-SDC agent moving at `start` (> MOVING_SPEED), that
+  agent alone marked in objects_of_interest: the copies (N,) and each one's (scene, object)."""
+  md, log = batch.object_metadata, batch.log_trajectory
+  pick = (np.asarray(md.is_modeled) & ~np.asarray(md.is_sdc) & np.asarray(log.valid[..., start])
+          & (np.asarray(log.speed[..., start]) > MOVING_SPEED))
+  who = [(int(b), int(o)) for b, o in zip(*np.nonzero(pick))]
+  if not who:
+    return None, who
+  scene = np.array([b for b, _ in who])
+  only = np.zeros((len(who), pick.shape[1]), bool)
+  only[np.arange(len(who)), [o for _, o in who]] = True
+  copies = jax.tree_util.tree_map(lambda a: a[scene], batch)
+  return copies.replace(object_metadata=copies.object_metadata.replace(objects_of_interest=jnp.asarray(only))), who
+
+
+def _solo_rows(args, actor, params, ecfg, batch, final, dt: float) -> dict:
+  """Per DRIFT_SECONDS: speed minus the log's of the agents moving at the start and at t, solo and joint."""
+  start = ecfg.init_steps - 1
+  copies, who = _solo_copies(batch, start)
+  rows = {f"{sec}s": dict(speed_diff_solo=float("nan"), speed_diff_joint_same=float("nan"), solo_agents=0)
+          for sec in DRIFT_SECONDS}
+  if not who:
+    return rows
+  rngs = jax.random.split(jax.random.PRNGKey(args.seed), len(who))
+  solo = jax.device_get(evaluation.make_rollout_fn(_solo_actor(actor), ecfg)(copies, rngs, params))
+  k, (b, o) = np.arange(len(who)), tuple(np.array(who).T)
+  for sec in DRIFT_SECONDS:
+    t = start + int(round(sec / dt))
+    log_speed = np.asarray(final.log_trajectory.speed)[b, o, t]
+    ok = (np.asarray(final.log_trajectory.valid)[b, o, t] & np.asarray(solo.sim_trajectory.valid)[k, o, t]
+          & np.asarray(final.sim_trajectory.valid)[b, o, t] & (log_speed > MOVING_SPEED))
+    solo_speed = np.asarray(solo.sim_trajectory.speed)[k, o, t]
+    joint_speed = np.asarray(final.sim_trajectory.speed)[b, o, t]
+    rows[f"{sec}s"] = dict(
+        speed_diff_solo=_mean_or_nan(solo_speed - log_speed, ok),
+        speed_diff_joint_same=_mean_or_nan(joint_speed - log_speed, ok), solo_agents=int(ok.sum()),
+        # [scene, object, the log's speed, solo, joint] of each agent counted (m/s)
+        solo_per_agent=[[int(b[i]), int(o[i]), round(float(log_speed[i]), 2), round(float(solo_speed[i]), 2),
+                         round(float(joint_speed[i]), 2)] for i in np.nonzero(ok)[0]])
+  return rows
+
+
 def drift(args, models, cfg, batch, num) -> dict:
   del models
   pcfg = _drift_policy(args)
@@ -169,6 +224,7 @@ def drift(args, models, cfg, batch, num) -> dict:
   actor, params = evaluation.make_actor(ecfg)
   rngs = jax.random.split(jax.random.PRNGKey(args.seed), num)
   final = jax.device_get(evaluation.make_rollout_fn(actor, ecfg)(batch, rngs, params))
+  solo = _solo_rows(args, actor, params, ecfg, batch, final, cfg.kinematics.dt) if args.solo else {}
   sim, log = final.sim_trajectory, final.log_trajectory
   ok = np.asarray(sim.valid & log.valid) & np.asarray(final.object_metadata.is_controlled)[..., None]
   yaw = np.asarray(log.yaw)
@@ -193,11 +249,14 @@ def drift(args, models, cfg, batch, num) -> dict:
                            speed_diff_mean=_mean_or_nan(speed_diff[..., t], moving),
                            moving_agents=int(moving.sum()),
                            speed_diff_cruising=_mean_or_nan(speed_diff[..., t], cruising),
-                           cruising_agents=int(cruising.sum()))
+                           cruising_agents=int(cruising.sum()), **solo.get(f"{sec}s", {}))
     r = rows[f"{sec}s"]
-    print(f"| {sec} s | {r['lateral_mean']:+.2f} | {r['lateral_abs']:.2f} | {r['longitudinal_mean']:+.2f} | "
-          f"{r['heading_mean']:+.3f} | {r['heading_abs']:.3f} | {r['agents']} | {r['speed_diff_mean']:+.2f} | "
-          f"{r['moving_agents']} | {r['speed_diff_cruising']:+.2f} | {r['cruising_agents']} |", flush=True)
+    line = (f"| {sec} s | {r['lateral_mean']:+.2f} | {r['lateral_abs']:.2f} | {r['longitudinal_mean']:+.2f} | "
+            f"{r['heading_mean']:+.3f} | {r['heading_abs']:.3f} | {r['agents']} | {r['speed_diff_mean']:+.2f} | "
+            f"{r['moving_agents']} | {r['speed_diff_cruising']:+.2f} | {r['cruising_agents']} |")
+    if solo:
+      line += f" {r['speed_diff_solo']:+.2f} | {r['speed_diff_joint_same']:+.2f} | {r['solo_agents']} |"
+    print(line, flush=True)
   return rows
 
 
@@ -309,6 +368,8 @@ def main(argv=None) -> None:
                  help="pcdiff: warm-started replanning (default) or cold plans")
   d.add_argument("--policy", nargs="+", default=[], metavar="FIELD=VALUE", type=_args.policy_item,
                  help="pcdiff: policy fields over the flags above, as experiments.rollout takes them")
+  d.add_argument("--solo", action="store_true",
+                 help="also simulate each moving evaluated agent alone (the others on their log)")
   f = sub.add_parser("first-action", help="first planned action against the log's")
   f.add_argument("--ddim-steps", type=int, default=5)
   f.add_argument("--no-prior", dest="prior", action="store_false")
@@ -339,7 +400,9 @@ def main(argv=None) -> None:
   headers = {"replay": "| plan | collision | off-road | realism W1 | minADE |",
              "drift": ("| time | lateral mean (m, left +) | lateral abs | longitudinal mean (m, ahead +) | "
                        "heading mean (rad) | heading abs | agents | speed - log's (m/s) | moving agents | "
-                       "cruising: speed - log's | cruising agents |"),
+                       "cruising: speed - log's | cruising agents |"
+                       + (" solo: speed - log's | joint, same agents | solo agents |"
+                          if getattr(args, "solo", False) else "")),
              "first-action": "| plan | yaw rate mean (rad/s) | yaw rate abs | accel mean (m/s^2) | agents |",
              "parked": "| plans of parked vehicles | median end (m) | share > 1 m | share > 5 m | agents |"}
   print(headers[args.section])

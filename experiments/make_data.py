@@ -33,6 +33,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="roadgraph samples per record, padded (WOMD: 20000)")
   p.add_argument("--families", nargs="+", default=None,
                  help="restrict to these map families (default: all, weighted)")
+  p.add_argument("--surface-limit-stretch", type=float, default=1.0,
+                 help="widen surface-street speed limits upwards (1: the benchmark's; 2: 10-24 m/s on roads)")
   p.add_argument("--stats", metavar="DIR", help="write the realism report for DIR instead")
   p.add_argument("--real", default=REAL_SAMPLE, help="real WOMD record to compare with")
   p.add_argument("--num-scenes", type=int, default=200, help="scenes read for --stats")
@@ -43,6 +45,8 @@ def parse_args(argv=None) -> argparse.Namespace:
   for name in ("num_train", "num_val"):
     if getattr(args, name) < 0:
       p.error(f"--{name.replace('_', '-')} must be >= 0")
+  if not 1.0 <= args.surface_limit_stretch <= 3.0:
+    p.error("--surface-limit-stretch must be within [1, 3]")
   for name in ("shard_size", "max_rg_points", "num_scenes", "metric_scenes"):
     if getattr(args, name) < 1:
       p.error(f"--{name.replace('_', '-')} must be >= 1")
@@ -64,7 +68,8 @@ def _generate(args) -> int:
   weights = DEFAULT_FAMILY_WEIGHTS
   if args.families:
     weights = tuple((f, w) for f, w in DEFAULT_FAMILY_WEIGHTS if f in args.families)
-  cfg = SyntheticConfig(max_rg_points=args.max_rg_points, family_weights=weights)
+  cfg = SyntheticConfig(max_rg_points=args.max_rg_points, family_weights=weights,
+                        surface_limit_stretch=args.surface_limit_stretch)
   with tqdm(total=args.num_train + args.num_val, desc="scenes", unit="scene") as bar:
     stats = write_dataset(args.out, args.num_train, args.num_val, args.seed, cfg,
                           shard_size=args.shard_size, workers=args.workers, on_progress=bar.update)

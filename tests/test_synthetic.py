@@ -161,6 +161,31 @@ def test_deterministic_and_seed_dependent():
   assert not same(a, c)
 
 
+@pytest.mark.parametrize("family", ["straight", "intersection", "merge"])
+def test_surface_limit_stretch_widens_only_the_surface_limits(family):
+  """The stretch maps the same draw to a higher limit, so the rest of the map is unchanged;
+  stretch 1 is the benchmark's generator."""
+  from pcdiff_jax.data.synthetic import maps
+  from pcdiff_jax.sim.datatypes import RoadgraphType
+  low = {"straight": 10.0, "intersection": 11.0, "merge": 12.0}[family]
+  stretched = 0
+  for seed in range(8):
+    base = maps.build(family, np.random.default_rng(seed), 91)
+    wide = maps.build(family, np.random.default_rng(seed), 91, surface_limit_stretch=2.0)
+    assert [l.xy.tolist() for l in base.lanes] == [l.xy.tolist() for l in wide.lanes]
+    assert [l.speed_limit for l in base.lanes if l.user != "vehicle"] == \
+        [l.speed_limit for l in wide.lanes if l.user != "vehicle"]
+    surface = [i for i, l in enumerate(base.lanes)
+               if l.user == "vehicle" and l.kind == int(RoadgraphType.LANE_SURFACE_STREET)]
+    if surface:   # the drawn limit is the map's highest surface limit
+      drawn = max(base.lanes[i].speed_limit for i in surface)
+      assert max(wide.lanes[i].speed_limit for i in surface) == pytest.approx(low + 2.0 * (drawn - low))
+      stretched += 1
+    else:         # a freeway keeps its limits
+      assert [l.speed_limit for l in base.lanes] == [l.speed_limit for l in wide.lanes]
+  assert stretched > 0
+
+
 def test_family_weights_are_complete():
   assert {f for f, _ in DEFAULT_FAMILY_WEIGHTS} == set(FAMILIES)
 
@@ -194,7 +219,8 @@ def test_make_data_cli_shards_resume_and_bytes(tmp_path):
 
 
 @pytest.mark.parametrize("argv", [[], ["--out", "x", "--num-train", "-1"], ["--out", "x", "--shard-size", "0"],
-                                  ["--out", "x", "--families", "roundabout"]])
+                                  ["--out", "x", "--families", "roundabout"],
+                                  ["--out", "x", "--surface-limit-stretch", "0.5"]])
 def test_make_data_bad_arguments(argv):
   from experiments import make_data
   with pytest.raises(SystemExit) as e:

@@ -243,7 +243,7 @@ def test_demo_pipeline_runs_end_to_end(tiny_trained, tmp_path):
   diagnose.main(common + ["--out", str(tmp_path / "first.json"), "first-action"])
   diagnose.main(common + ["--out", str(tmp_path / "replay.json"), "replay", "--plans", "log,top1-latent"])
   diagnose.main(common + ["--out", str(tmp_path / "parked.json"), "parked", "--samples", "2", "--warm-steps", "30"])
-  diagnose.main(common + ["--out", str(tmp_path / "drift.json"), "drift", "--method", "cv"])
+  diagnose.main(common + ["--out", str(tmp_path / "drift.json"), "drift", "--method", "cv", "--solo"])
   with open(tmp_path / "drift.json") as f:
     drift = json.load(f)["rows"]
   assert set(drift) == {"1s", "2s", "4s", "6s", "8s"}
@@ -251,6 +251,12 @@ def test_demo_pipeline_runs_end_to_end(tiny_trained, tmp_path):
   assert {"longitudinal_mean", "speed_diff_mean", "moving_agents", "speed_diff_cruising",
           "cruising_agents"} <= set(drift["8s"])
   assert drift["8s"]["cruising_agents"] <= drift["8s"]["moving_agents"]   # cruising: moving at the start too
+  # Constant velocity ignores the others: alone or not, each agent drives the same.
+  assert drift["1s"]["solo_agents"] > 0
+  for row in drift.values():
+    if row["solo_agents"]:
+      assert row["speed_diff_solo"] == pytest.approx(row["speed_diff_joint_same"], abs=1e-5)
+      assert len(row["solo_per_agent"]) == row["solo_agents"]
   with open(tmp_path / "parked.json") as f:
     parked = json.load(f)["rows"]
   assert set(parked) == {"top1 proposal", "cold", "warm from top1 @30"}

@@ -165,7 +165,14 @@ def _curvature_fn(rng: np.random.Generator, amplitude: float):
 # ----------------------------------------------------------------------------- roads
 
 
-def build_road(rng: np.random.Generator, curved: bool, num_steps: int) -> Map:
+def _surface_limit(rng: np.random.Generator, low: float, high: float, stretch: float) -> float:
+  """A surface street's speed limit (m/s), uniform on [low, low + stretch * (high - low)]; one draw
+  whatever the stretch, so the rest of a scene is drawn the same."""
+  return low + stretch * (rng.uniform(low, high) - low)
+
+
+def build_road(rng: np.random.Generator, curved: bool, num_steps: int,
+               surface_limit_stretch: float = 1.0) -> Map:
   m = Map("curved" if curved else "straight", [], [], {}, np.zeros(2), rng.uniform(0.15, 1.0))
   length = 400.0
   amp = rng.uniform(1 / 250, 1 / 110) if curved else 0.0
@@ -178,7 +185,8 @@ def build_road(rng: np.random.Generator, curved: bool, num_steps: int) -> Map:
     width, limit, kind = rng.uniform(3.5, 3.9), rng.uniform(24.0, 31.0), int(RG.LANE_FREEWAY)
     median = rng.uniform(2.0, 5.0)
   else:
-    width, limit, kind = rng.uniform(3.0, 3.8), rng.uniform(10.0, 17.0), int(RG.LANE_SURFACE_STREET)
+    width = rng.uniform(3.0, 3.8)
+    limit, kind = _surface_limit(rng, 10.0, 17.0, surface_limit_stretch), int(RG.LANE_SURFACE_STREET)
     median = 0.0
   bike = (not freeway) and rng.uniform() < 0.35
   parking = (not freeway) and rng.uniform() < 0.5
@@ -238,7 +246,8 @@ def _light_schedule(rng: np.random.Generator, protected_left: bool, num_steps: i
   return {c: np.array([phases[i][1][c] for i in idx], np.int32) for c in classes}
 
 
-def build_junction(rng: np.random.Generator, num_steps: int, tee: bool) -> Map:
+def build_junction(rng: np.random.Generator, num_steps: int, tee: bool,
+                   surface_limit_stretch: float = 1.0) -> Map:
   """A 4-way signalised intersection, or a T-junction with stop signs on the minor arm.
 
   Arm k points along angle k*90 deg; its incoming lanes lie on its left
@@ -246,7 +255,7 @@ def build_junction(rng: np.random.Generator, num_steps: int, tee: bool) -> Map:
   """
   m = Map("t_junction" if tee else "intersection", [], [], {}, np.zeros(2), rng.uniform(0.3, 1.0))
   width = rng.uniform(3.1, 3.8)
-  limit = rng.uniform(11.0, 16.0)
+  limit = _surface_limit(rng, 11.0, 16.0, surface_limit_stretch)
   arms = [0, 1, 2, 3]
   minor = None
   if tee:
@@ -372,12 +381,12 @@ def _connector(p0, h0, p1, h1, corner: Optional[np.ndarray], radius: float) -> n
 # ----------------------------------------------------------------------------- merge
 
 
-def build_merge(rng: np.random.Generator, num_steps: int) -> Map:
+def build_merge(rng: np.random.Generator, num_steps: int, surface_limit_stretch: float = 1.0) -> Map:
   """A multi-lane road with an on-ramp: ramp -> acceleration lane -> merge by lane change."""
   m = Map("merge", [], [], {}, np.zeros(2), rng.uniform(0.3, 1.0))
   freeway = rng.uniform() < 0.6
   width = rng.uniform(3.4, 3.8)
-  limit = rng.uniform(22.0, 30.0) if freeway else rng.uniform(12.0, 17.0)
+  limit = rng.uniform(22.0, 30.0) if freeway else _surface_limit(rng, 12.0, 17.0, surface_limit_stretch)
   kind = int(RG.LANE_FREEWAY if freeway else RG.LANE_SURFACE_STREET)
   n_fwd, n_bwd = int(rng.integers(1, 4)), int(rng.integers(1, 4))
   length = 400.0
@@ -417,13 +426,15 @@ def build_merge(rng: np.random.Generator, num_steps: int) -> Map:
   return m
 
 
-def build(family: str, rng: np.random.Generator, num_steps: int) -> Map:
+def build(family: str, rng: np.random.Generator, num_steps: int, surface_limit_stretch: float = 1.0) -> Map:
+  """The map of one scene of `family`. surface_limit_stretch widens the range of surface-street
+  speed limits upwards (1: the benchmark's 10-17 m/s on roads; 2: 10-24 m/s)."""
   if family in ("straight", "curved"):
-    m = build_road(rng, family == "curved", num_steps)
+    m = build_road(rng, family == "curved", num_steps, surface_limit_stretch)
   elif family in ("intersection", "t_junction"):
-    m = build_junction(rng, num_steps, tee=family == "t_junction")
+    m = build_junction(rng, num_steps, family == "t_junction", surface_limit_stretch)
   elif family == "merge":
-    m = build_merge(rng, num_steps)
+    m = build_merge(rng, num_steps, surface_limit_stretch)
   else:
     raise ValueError(f"unknown map family {family!r}; choose from {FAMILIES}")
   return m

@@ -31,6 +31,9 @@ class SyntheticConfig:
   sensor_range: float = 100.0                  # objects farther from the SDC are not observed
   family_weights: tuple = DEFAULT_FAMILY_WEIGHTS
   max_attempts: int = 5                        # re-draw a scene whose log has an overlap
+  # Surface-street speed limits stretched upwards (`maps.build`): 1 keeps the benchmark's
+  # scenes; real WOMD surface streets carry faster traffic (docs/RESULTS.md, "Synthetic speeds").
+  surface_limit_stretch: float = 1.0
 
 
 @dataclasses.dataclass
@@ -237,7 +240,7 @@ def generate_scene(seed: int, index: int, cfg: SyntheticConfig = SyntheticConfig
   for attempt in range(cfg.max_attempts):
     rng = np.random.default_rng([seed, stream, index, attempt])
     family = _family(rng, cfg)
-    m = maps_lib.build(family, rng, cfg.warmup_steps + cfg.num_steps)
+    m = maps_lib.build(family, rng, cfg.warmup_steps + cfg.num_steps, cfg.surface_limit_stretch)
     logs = _traffic.simulate(m, rng, cfg.num_steps, cfg.warmup_steps, cfg.max_objects)
     arrays = assemble(m, logs, rng, cfg)
     if arrays is None:
