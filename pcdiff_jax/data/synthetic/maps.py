@@ -167,8 +167,10 @@ def _curvature_fn(rng: np.random.Generator, amplitude: float):
 
 def _surface_limit(rng: np.random.Generator, low: float, high: float, stretch: float) -> float:
   """A surface street's speed limit (m/s), uniform on [low, low + stretch * (high - low)]; one draw
-  whatever the stretch, so the rest of a scene is drawn the same."""
-  return low + stretch * (rng.uniform(low, high) - low)
+  whatever the stretch, so the rest of a scene is drawn the same; stretch 1 returns the draw itself,
+  so the benchmark's scenes stay bit for bit."""
+  drawn = rng.uniform(low, high)
+  return drawn if stretch == 1.0 else low + stretch * (drawn - low)
 
 
 def build_road(rng: np.random.Generator, curved: bool, num_steps: int,
