@@ -18,8 +18,9 @@ lists every scenario id of the submission.
 --kinematic scores only the four kinematic likelihoods (a second per scene
 instead of minutes), with Waymo's own features and estimator, and beside each
 the share of the log's steps whose bin no rollout visits ("unvisited": each
-such step costs log(0.1 / (rollouts x steps))): {"scenario_id", "record",
-"kinematic": {...}, "seconds"}.
+such step costs log(0.1 / (rollouts x steps))), and per evaluated agent its valid and unvisited
+steps of each (which agents the rollouts never reproduce): {"scenario_id", "record",
+"kinematic": {..., "agents": [{"object_id", "steps", "unvisited"}]}, "seconds"}.
 """
 import argparse
 import json
@@ -77,6 +78,7 @@ def kinematic_likelihoods(config, scenario, scenario_rollouts) -> dict:
   speed_valid, accel_valid = trajectory_features.compute_kinematic_validity(
       logged.gather_objects_by_id(ids).valid[:, future])
   out = {}
+  agents = [{"object_id": int(i), "steps": {}, "unvisited": {}} for i in ids.numpy()]
   for k, name in enumerate(KINEMATIC):
     feature = getattr(config, name)
     sim = tf.stack([s[k] for s in sims])                                   # (rollouts, objects, steps)
@@ -85,8 +87,12 @@ def kinematic_likelihoods(config, scenario, scenario_rollouts) -> dict:
     floor = np.log(feature.histogram.additive_smoothing_pseudocount
                    / (sim.shape[0] * sim.shape[2] + feature.histogram.additive_smoothing_pseudocount
                       * feature.histogram.num_bins))
+    unvisited = valid & (ll < floor + 1e-3)                                # (objects, steps)
     out[f"{name}_likelihood"] = float(np.exp(ll[valid].mean())) if valid.any() else float("nan")
-    out[f"{name}_unvisited"] = float((ll[valid] < floor + 1e-3).mean()) if valid.any() else float("nan")
+    out[f"{name}_unvisited"] = float(unvisited.sum() / valid.sum()) if valid.any() else float("nan")
+    for a, row in enumerate(agents):
+      row["steps"][name], row["unvisited"][name] = int(valid[a].sum()), int(unvisited[a].sum())
+  out["agents"] = agents
   return out
 
 

@@ -189,3 +189,16 @@ def test_guided_targets_are_the_guided_plan_of_the_visited_state(tiny_models):
     closed_loop.make_collect_fn(None, CFG, closed_loop.OnPolicyConfig(targets="guided"), policy.PolicyConfig())
   with pytest.raises(ValueError, match="targets must be one of"):
     closed_loop.make_collect_fn(None, CFG, closed_loop.OnPolicyConfig(targets="log"))
+
+
+def test_on_policy_agents_whose_log_overlaps_another_box_can_be_left_out():
+  """The on-policy half of drop_log_overlaps: the scene of the training test (object 0 drives
+  into object 2, standing 60 m ahead in its lane) rolled out on its log to step 10: with it, 0
+  and 2 get no valid target step and the others keep theirs; without it all four keep theirs."""
+  state = make_scene(num_steps=91, xs=(0.0, 0.0, 60.0, -30.0), ys=(-2.0, 2.0, -2.0, -2.0))
+  state = state.replace(sim_trajectory=state.log_trajectory, timestep=jnp.int32(10))
+  feats = _features(state)
+  trained = lambda cfg: {int(o): bool(v.any()) for o, v, ok in zip(
+      feats.agent_index, _targets(state, feats, cfg).future_valid, feats.agent_valid) if ok}
+  assert trained(closed_loop.OnPolicyConfig()) == {0: True, 1: True, 2: True, 3: True}
+  assert trained(closed_loop.OnPolicyConfig(drop_log_overlaps=True)) == {0: False, 1: True, 2: False, 3: True}

@@ -346,6 +346,8 @@ def test_the_official_evaluator_scores_log_replay_on_the_real_record(womd_path, 
   for name in ("linear_speed", "linear_acceleration", "angular_speed", "angular_acceleration"):
     assert kinematic[f"{name}_likelihood"] == pytest.approx(scene["metrics"][f"{name}_likelihood"], abs=1e-5)
     assert kinematic[f"{name}_unvisited"] == 0.0
+  agents = kinematic["agents"]   # per evaluated agent: its valid steps, none of them unvisited
+  assert agents and all(sum(a["unvisited"].values()) == 0 and a["steps"]["linear_speed"] > 0 for a in agents)
 
 
 def test_the_fallback_is_left_out_only_where_it_drives_nobody(tiny_models):
