@@ -32,6 +32,22 @@ def add_policy_flags(p: argparse.ArgumentParser) -> None:
                       "max_curvature=0.3 jerk_limit=1.5,5 (tuples comma-separated); the fields are listed below")
 
 
+def add_map_flags(p: argparse.ArgumentParser) -> None:
+  """A learned model's map crop at evaluation time (`EvalConfig.map_pieces`, `.map_anchor`)."""
+  p.add_argument("--map-pieces", type=int, default=None, metavar="N",
+                 help="learned methods: map pieces the encoder sees (default: the model's, 256); fewer is faster")
+  p.add_argument("--map-anchor", default=None, choices=("sdc", "agents"),
+                 help="learned methods: keep the pieces nearest the SDC (the model's default) or nearest any "
+                      "modelled agent")
+
+
+def map_crop(p: argparse.ArgumentParser, args: argparse.Namespace) -> dict:
+  """{map_pieces, map_anchor} for EvalConfig; a usage error (exit 2) for a bad count."""
+  if args.map_pieces is not None and args.map_pieces < 1:
+    p.error("--map-pieces must be >= 1")
+  return {"map_pieces": args.map_pieces, "map_anchor": args.map_anchor}
+
+
 def policy_fields_epilog() -> str:
   """A --help epilog: every policy field with its default."""
   import dataclasses

@@ -30,8 +30,9 @@ with four samples too), the actor's state made once per scenario outside the tim
 field: `default_actor_init_ms`). Compile time is excluded and reported separately.
 
 `wosac` (not in the default sections): seconds per scene of a WOSAC export
-of ours (`--wosac-checkpoint`) with every plan in 65 agent slots against
-plans sized to the scene (`wosac.plan_cap`), scene by scene, compile excluded.
+of ours (`--wosac-checkpoint`) with every plan in 65 agent slots, plans sized
+to the scene (`wosac.plan_cap`) and sized plans with a smaller map crop
+(`--wosac-variants`), scene by scene, compile excluded.
 
 `devices`: data-parallel training steps/s (the stage-1 step, the preset's
 global batch split over N devices) and scenario-parallel closed-loop scenes/s
@@ -49,6 +50,7 @@ import json
 import os
 import tempfile
 import time
+from typing import Sequence
 
 import jax
 import numpy as np
@@ -444,29 +446,37 @@ def bench_devices(path: str, preset: str, counts: list[int], train_steps: int, r
           "train_encoder_step": train_rows, "closed_loop": rollout_rows}
 
 
-def bench_wosac_plans(path: str, checkpoint: str, num_scenes: int, num_rollouts: int) -> list[dict]:
-  """Seconds per scene of a WOSAC export (`wosac.Simulator.simulate`) with the
-  plan in the full cap's 65 slots against the slots sized to the scene
-  (`WosacConfig.size_plans`), for the first `num_scenes` scenes of `path`; each
-  timed call follows an untimed one of the same scene (its compile)."""
+def bench_wosac_plans(path: str, checkpoint: str, num_scenes: int, num_rollouts: int,
+                      variants: Sequence[str] = ("full", "sized"), map_pieces: int = 128,
+                      map_anchor: str = "agents") -> list[dict]:
+  """Seconds per scene of a WOSAC export (`wosac.Simulator.simulate`) in each
+  of `variants`: "full" (every plan in the cap's 65 slots), "sized" (slots
+  sized to the scene, `WosacConfig.size_plans`: the default) and "cropped"
+  (sized, and the map crop `map_pieces` / `map_anchor`), for the first
+  `num_scenes` scenes of `path`; each timed call follows an untimed one of the
+  same scene (its compile). Ratios are CPU time against "sized"."""
   from pcdiff_jax import evaluation, wosac
   from pcdiff_jax.data import womd
+  crops = {"full": {}, "sized": {}, "cropped": {"map_pieces": map_pieces, "map_anchor": map_anchor}}
+  sims = {name: wosac.Simulator(wosac.WosacConfig(
+      eval=evaluation.EvalConfig(method="pcdiff", checkpoint=checkpoint, **crops[name]),
+      num_rollouts=num_rollouts, rollouts_per_call=num_rollouts, size_plans=name != "full"))
+      for name in variants}
   rows = []
-  sims = {sized: wosac.Simulator(wosac.WosacConfig(
-      eval=evaluation.EvalConfig(method="pcdiff", checkpoint=checkpoint), num_rollouts=num_rollouts,
-      rollouts_per_call=num_rollouts, size_plans=sized)) for sized in (False, True)}
   for state, meta in womd.iterate([path], with_meta=True, history_only=True, max_num_objects=None,
                                   max_scenarios=num_scenes, to_jax=False):
     agents = int(np.asarray(state.log_trajectory.valid)[:, 10].sum())
+    sized = next((sim for name, sim in sims.items() if name != "full"), None)
     row = {"scenario_id": meta.scenario_id, "sim_agents": agents,
-           "cap": sims[True].learned_run(state)[2]}
-    for sized, sim in sims.items():
+           "cap": sized.learned_run(state)[2] if sized else None}
+    for name, sim in sims.items():
       sim.simulate(state, meta.scenario_id)
       t0, c0 = time.perf_counter(), time.process_time()
       sim.simulate(state, meta.scenario_id)
-      key = "sized" if sized else "full"
-      row[f"{key}_s"], row[f"{key}_cpu_s"] = time.perf_counter() - t0, time.process_time() - c0
-    row["cpu_ratio"] = row["full_cpu_s"] / row["sized_cpu_s"]
+      row[f"{name}_s"], row[f"{name}_cpu_s"] = time.perf_counter() - t0, time.process_time() - c0
+    for name in sims:
+      if name != "sized" and "sized" in sims:
+        row[f"sized_over_{name}_cpu"] = row["sized_cpu_s"] / row[f"{name}_cpu_s"]
     print(json.dumps(row), flush=True)
     rows.append(row)
   return rows
@@ -500,6 +510,11 @@ def main(argv=None) -> int:
                  help="wosac: the learned model (default: the shipped one, pcdiff_jax.shipped.checkpoint_dir())")
   p.add_argument("--wosac-scenes", type=int, default=4, help="wosac: the first N scenes of --scenarios")
   p.add_argument("--wosac-rollouts", type=int, default=32, help="wosac: rollouts per scene (one jitted call)")
+  p.add_argument("--wosac-variants", nargs="+", default=["full", "sized"], choices=("full", "sized", "cropped"),
+                 help="wosac: 65 slots, slots sized to the scene (the default), sized + the map crop below")
+  p.add_argument("--wosac-map-pieces", type=int, default=128, help="wosac: the cropped variant's map pieces")
+  p.add_argument("--wosac-map-anchor", default="agents", choices=("sdc", "agents"),
+                 help="wosac: the cropped variant's map anchor")
   p.add_argument("--sections", nargs="+", default=[s for s in SECTIONS if s not in ("devices", "wosac")],
                  choices=SECTIONS, help="default: all but devices and wosac")
   p.add_argument("--json", help="also write the results here")
@@ -539,7 +554,8 @@ def main(argv=None) -> int:
     from pcdiff_jax import shipped
     checkpoint = args.wosac_checkpoint or shipped.checkpoint_dir()
     results["wosac_plans"] = bench_wosac_plans(args.scenarios, checkpoint, args.wosac_scenes,
-                                               args.wosac_rollouts)
+                                               args.wosac_rollouts, args.wosac_variants,
+                                               args.wosac_map_pieces, args.wosac_map_anchor)
   print(json.dumps(results, indent=2))
   if args.json:
     with open(args.json, "w") as f:

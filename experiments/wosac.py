@@ -80,6 +80,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                       "32, 64, ... that hold its sim agents (the random draws of exports made before plans were "
                       "sized; slower on small scenes)")
   _args.add_policy_flags(p)
+  _args.add_map_flags(p)
   p.add_argument("--guidance", default="none", choices=("none", "objective"),
                  help="pcdiff: objective guidance (map and collision costs) with its default weights")
   p.add_argument("--num-rollouts", type=int, default=submission.NUM_ROLLOUTS,
@@ -122,6 +123,7 @@ def parse_args(argv=None) -> argparse.Namespace:
   if args.max_scenarios is not None and args.max_scenarios < 1:
     p.error("--max-scenarios must be >= 1")
   args.policy_config = _args.policy_config(p, args)
+  args.map_crop = _args.map_crop(p, args)
   return args
 
 
@@ -201,7 +203,8 @@ def main(argv=None) -> int:
     guidance = GuidanceConfig(mode=args.guidance)
     pcfg = args.policy_config
     ev = evaluation.EvalConfig(method=args.method, checkpoint=args.checkpoint, policy=pcfg, seed=args.seed,
-                               metrics=MetricsConfig(max_reactive_agents=args.max_agents), guidance=guidance)
+                               metrics=MetricsConfig(max_reactive_agents=args.max_agents), guidance=guidance,
+                               **args.map_crop)
     cfg = wosac.WosacConfig(eval=ev, ego=args.ego, num_rollouts=args.num_rollouts,
                             rollouts_per_call=args.rollouts_per_call, max_objects=args.max_objects,
                             size_plans=not args.full_plans)

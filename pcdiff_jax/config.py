@@ -39,13 +39,15 @@ class FeaturesConfig:
   first, then nearest the SDC; `history_steps` steps ending at that step.
   Map: polylines cut into pieces of at most `segment_length` metres (equal
   pieces per polyline), each resampled to `points_per_polyline` points; the
-  `max_polylines` pieces nearest the SDC are kept.
+  `max_polylines` pieces nearest the SDC are kept (`map_anchor="agents"`:
+  nearest any modelled agent).
   """
   max_agents: int = 65             # the SDC + the 64 reactive agents scored by MetricsConfig
   history_steps: int = 11
   max_polylines: int = 256
   points_per_polyline: int = 10
   segment_length: float = 20.0     # m
+  map_anchor: str = "sdc"
 
 
 @dataclasses.dataclass(frozen=True)

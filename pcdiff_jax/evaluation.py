@@ -24,6 +24,7 @@ from pcdiff_jax.baselines import idm
 from pcdiff_jax import metrics as metrics_lib
 from pcdiff_jax.config import MetricsConfig
 from pcdiff_jax.data import womd
+from pcdiff_jax.model import features as features_lib
 from pcdiff_jax.model import guidance as guidance_lib
 from pcdiff_jax.model.guidance import GuidanceConfig
 from pcdiff_jax.policy.config import PolicyConfig
@@ -65,7 +66,10 @@ class EvalConfig:
   (the SDC and every evaluated agent), whatever cap they were trained with,
   so every evaluated agent is controlled and none follows its log; the
   attention layers take any agent count, at a cost that grows with it
-  (docs/BENCHMARKS.md)."""
+  (docs/BENCHMARKS.md). map_pieces, map_anchor: the learned model's map crop
+  (`FeaturesConfig.max_polylines`, `.map_anchor`; None keeps the trained
+  model's): fewer pieces, anchored on the agents, is a cheaper encoder
+  (docs/BENCHMARKS.md, "WOSAC at WOMD scale")."""
   method: str = "cv"
   checkpoint: Optional[str] = None
   ego: str = "log"
@@ -83,6 +87,8 @@ class EvalConfig:
   max_scenarios: Optional[int] = None
   simpl_ar_sample: bool = False
   align_headings: bool = True
+  map_pieces: Optional[int] = None
+  map_anchor: Optional[str] = None
 
   @property
   def replan_every(self) -> int:
@@ -126,11 +132,24 @@ def _method_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
     from pcdiff_jax.baselines import simpl_ar
     enc, model_cfg = encoder_stage.load_simpl_ar(cfg.checkpoint)
     ar = simpl_ar.SimplARConfig(sample=cfg.simpl_ar_sample)
-    return simpl_ar.simpl_ar(with_agent_cap(model_cfg, cfg.metrics), ar), enc
+    return simpl_ar.simpl_ar(run_config(model_cfg, cfg), ar), enc
   use_prior = cfg.method == "pcdiff"
   models, model_cfg = diffusion_stage.load(cfg.checkpoint, use_prior=use_prior)
   pcfg = dataclasses.replace(cfg.policy, prior_init=use_prior, guidance=cfg.guidance)
-  return policy.actor(with_agent_cap(model_cfg, cfg.metrics), pcfg), models
+  return policy.actor(run_config(model_cfg, cfg), pcfg), models
+
+
+def run_config(model_cfg, cfg: EvalConfig):
+  """The learned model's config as `cfg` runs it: room for every evaluated
+  agent (`with_agent_cap`) and the map crop of `cfg.map_pieces` / `.map_anchor`."""
+  model_cfg = with_agent_cap(model_cfg, cfg.metrics)
+  crop = {name: value for name, value in (("max_polylines", cfg.map_pieces), ("map_anchor", cfg.map_anchor))
+          if value is not None}
+  if cfg.map_pieces is not None and cfg.map_pieces < 1:
+    raise ValueError(f"map_pieces must be >= 1, got {cfg.map_pieces}")
+  if cfg.map_anchor not in (None,) + features_lib.MAP_ANCHORS:
+    raise ValueError(f"unknown map_anchor {cfg.map_anchor!r}; choose one of {list(features_lib.MAP_ANCHORS)}")
+  return dataclasses.replace(model_cfg, features=dataclasses.replace(model_cfg.features, **crop))
 
 
 def with_agent_cap(model_cfg, metrics: MetricsConfig):

@@ -289,3 +289,31 @@ def test_scatter_and_frame_helpers(scene_state):
                              atol=1e-5)
   per_object = F.scatter_to_objects(jnp.arange(CFG.max_agents, dtype=jnp.float32) + 1, f, 4, -1.0)
   np.testing.assert_array_equal(per_object[idx], np.arange(4) + 1)
+
+
+def nearest_piece_distance(f, agent_xy):
+  """(A,) distance of each agent (A, 2) world to the nearest point of a kept piece."""
+  pts = np.concatenate([world_points(f, i) for i in np.nonzero(np.asarray(f.map_valid))[0]])
+  return np.min(np.linalg.norm(agent_xy[:, None] - pts[None], axis=-1), axis=1)
+
+
+def test_a_crop_anchored_on_the_agents_keeps_the_map_around_every_agent(real_reset):
+  # A crop too small for the whole scene: anchored on the SDC it leaves the far
+  # agents without a map; anchored on the agents it keeps each agent's surroundings.
+  small = dataclasses.replace(PAPER, max_polylines=64)
+  by_sdc = FEATURES(real_reset, small)
+  by_agents = FEATURES(real_reset, dataclasses.replace(small, map_anchor="agents"))
+  np.testing.assert_array_equal(by_sdc.agent_index, by_agents.agent_index)
+  np.testing.assert_allclose(by_sdc.agent_history, by_agents.agent_history)
+  assert np.asarray(by_agents.map_valid).all()
+  valid = np.asarray(by_sdc.agent_valid)
+  xy = np.asarray(real_reset.current_sim_trajectory.xy[:, 0])[np.asarray(by_sdc.agent_index)[valid]]
+  rg = np.asarray(real_reset.roadgraph_points.xy)[np.asarray(real_reset.roadgraph_points.valid)]
+  on_map = np.min(np.linalg.norm(xy[:, None] - rg[None], axis=-1), axis=1) < 5.0    # 48 of 65 agents
+  near_sdc = nearest_piece_distance(by_sdc, xy)[on_map] < 5.0
+  near_agents = nearest_piece_distance(by_agents, xy)[on_map] < 5.0
+  assert near_sdc.mean() < 0.5               # 64 pieces around the SDC: 20 of the 48
+  assert near_agents.mean() > 0.95           # around the agents: 47
+  assert on_map[0] and near_agents[0]        # the SDC's own road is still there
+  with pytest.raises(ValueError, match="map_anchor"):
+    FEATURES(real_reset, dataclasses.replace(small, map_anchor="ego"))

@@ -362,8 +362,25 @@ def _resample(arc: Array, xy: Array, first: Array, last: Array, query: Array) ->
   return xy[lo] + frac[..., None] * (xy[nxt] - xy[lo])
 
 
+MAP_ANCHORS = ("sdc", "agents")
+
+
+def _map_anchor_distance(rg_xy: Array, scene_xy: Array, anchor_xy: Array,
+                         anchor_valid: Array, anchor: str) -> Array:
+  """(R,) the distance that ranks map points for the crop: to the SDC
+  ("sdc"), or to the nearest modelled agent ("agents": every agent keeps the
+  map around it however far from the SDC, so a smaller crop still covers a
+  spread-out scene)."""
+  if anchor == "sdc":
+    return jnp.linalg.norm(rg_xy - scene_xy, axis=-1)
+  if anchor != "agents":
+    raise ValueError(f"unknown map_anchor {anchor!r}; choose one of {list(MAP_ANCHORS)}")
+  d = jnp.linalg.norm(rg_xy[:, None] - anchor_xy[None], axis=-1)         # (R, A)
+  return jnp.min(jnp.where(anchor_valid[None], d, jnp.inf), axis=1)
+
+
 def _map_features(state: SimulatorState, config: FeaturesConfig, scene_xy: Array,
-                  scene_yaw: Array):
+                  scene_yaw: Array, anchor_xy: Array, anchor_valid: Array):
   rg = state.roadgraph_points
   r = rg.num_points
   m, p = config.max_polylines, config.points_per_polyline
@@ -371,7 +388,7 @@ def _map_features(state: SimulatorState, config: FeaturesConfig, scene_xy: Array
   idx = jnp.arange(r)
   # One candidate slot per point is enough: a piece holds at least one point.
   first_point = jax.ops.segment_min(idx, arcs.slot, num_segments=r)       # (R,)
-  dist = jnp.linalg.norm(rg.xy - scene_xy, axis=-1)
+  dist = _map_anchor_distance(rg.xy, scene_xy, anchor_xy, anchor_valid, config.map_anchor)
   piece_dist = jax.ops.segment_min(jnp.where(arcs.keep, dist, jnp.inf), arcs.slot,
                                    num_segments=r)                        # (R,), inf if empty
   # Rank on centimetres so that rounding noise cannot reorder near-ties.
@@ -439,7 +456,8 @@ def _scene_features_one(state: SimulatorState, config: FeaturesConfig,
   return SceneFeatures(
       agent_history=hist, agent_history_valid=hv, agent_valid=valid, agent_index=index,
       agent_types=types.astype(jnp.int32), agent_center=centre, agent_dir=direction,
-      **_map_features(state, config, scene_xy, scene_yaw),
+      **_map_features(state, config, scene_xy, scene_yaw,
+                      state.current_sim_trajectory.xy[index, 0], valid),
       scene_xy=scene_xy, scene_yaw=scene_yaw, timestep=jnp.asarray(state.timestep, jnp.int32))
 
 
