@@ -88,7 +88,7 @@ def machine() -> str:
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="the reference was recorded on CPU")
 def test_rollouts_match_the_recorded_policy(tmp_path):
   """Bit for bit where jax, jaxlib and the CPU's vector units are those of the recording; elsewhere
-  XLA may compile other instructions (FMA, vector widths), so to float32 rounding over 5 steps.
+  XLA may compile other instructions (FMA, vector widths), so to 1e-3 (float32 rounding over 5 steps).
   The rollouts run in a fresh interpreter with XLA's default code generation (conftest.py's
   faster compile settings round differently)."""
   if not REFERENCE.exists():
@@ -108,7 +108,9 @@ def test_rollouts_match_the_recorded_policy(tmp_path):
     if recorded_on == ran_on:
       np.testing.assert_array_equal(got[key], want, err_msg=key)
     else:
-      np.testing.assert_allclose(got[key], want, rtol=1e-4, atol=1e-4, err_msg=f"{key} (recorded on {recorded_on})")
+      # A CPU with other vector units (e.g. avx512_bf16) rounds otherwise, and 5 closed-loop
+      # steps amplify it: 2e-4 on one of 40 actions there.
+      np.testing.assert_allclose(got[key], want, rtol=1e-3, atol=1e-3, err_msg=f"{key} (recorded on {recorded_on})")
 
 
 if __name__ == "__main__":   # [PATH]: write the outputs there (the test's run), else record REFERENCE
