@@ -448,7 +448,7 @@ def bench_devices(path: str, preset: str, counts: list[int], train_steps: int, r
 
 def bench_wosac_plans(path: str, checkpoint: str, num_scenes: int, num_rollouts: int,
                       variants: Sequence[str] = ("full", "sized"), map_pieces: int = 128,
-                      map_anchor: str = "agents") -> list[dict]:
+                      map_anchor: str = "sdc") -> list[dict]:
   """Seconds per scene of a WOSAC export (`wosac.Simulator.simulate`) in each
   of `variants`: "full" (every plan in the cap's 65 slots), "sized" (slots
   sized to the scene, `WosacConfig.size_plans`: the default) and "cropped"
@@ -513,7 +513,7 @@ def main(argv=None) -> int:
   p.add_argument("--wosac-variants", nargs="+", default=["full", "sized"], choices=("full", "sized", "cropped"),
                  help="wosac: 65 slots, slots sized to the scene (the default), sized + the map crop below")
   p.add_argument("--wosac-map-pieces", type=int, default=128, help="wosac: the cropped variant's map pieces")
-  p.add_argument("--wosac-map-anchor", default="agents", choices=("sdc", "agents"),
+  p.add_argument("--wosac-map-anchor", default="sdc", choices=("sdc", "agents"),
                  help="wosac: the cropped variant's map anchor")
   p.add_argument("--sections", nargs="+", default=[s for s in SECTIONS if s not in ("devices", "wosac")],
                  choices=SECTIONS, help="default: all but devices and wosac")

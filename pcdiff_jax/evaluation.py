@@ -68,8 +68,8 @@ class EvalConfig:
   attention layers take any agent count, at a cost that grows with it
   (docs/BENCHMARKS.md). map_pieces, map_anchor: the learned model's map crop
   (`FeaturesConfig.max_polylines`, `.map_anchor`; None keeps the trained
-  model's): fewer pieces, anchored on the agents, is a cheaper encoder
-  (docs/BENCHMARKS.md, "WOSAC at WOMD scale")."""
+  model's): fewer pieces is a cheaper encoder, at a cost in score measured in
+  docs/BENCHMARKS.md, "WOSAC at WOMD scale"."""
   method: str = "cv"
   checkpoint: Optional[str] = None
   ego: str = "log"
