@@ -32,7 +32,8 @@ field: `default_actor_init_ms`). Compile time is excluded and reported separatel
 `wosac` (not in the default sections): seconds per scene of a WOSAC export
 of ours (`--wosac-checkpoint`) with every plan in 65 agent slots, plans sized
 to the scene (`wosac.plan_cap`) and sized plans with a smaller map crop
-(`--wosac-variants`), scene by scene, compile excluded.
+(`--wosac-variants`), all rollouts in one call, and sized plans at N rollouts
+per call (`--wosac-rollouts-per-call`), scene by scene, compile excluded.
 
 `devices`: data-parallel training steps/s (the stage-1 step, the preset's
 global batch split over N devices) and scenario-parallel closed-loop scenes/s
@@ -448,20 +449,23 @@ def bench_devices(path: str, preset: str, counts: list[int], train_steps: int, r
 
 def bench_wosac_plans(path: str, checkpoint: str, num_scenes: int, num_rollouts: int,
                       variants: Sequence[str] = ("full", "sized"), map_pieces: int = 128,
-                      map_anchor: str = "sdc") -> list[dict]:
+                      map_anchor: str = "sdc", per_call: Sequence[int] = ()) -> list[dict]:
   """Seconds per scene of a WOSAC export (`wosac.Simulator.simulate`) in each
-  of `variants`: "full" (every plan in the cap's 65 slots), "sized" (slots
-  sized to the scene, `WosacConfig.size_plans`: the default) and "cropped"
-  (sized, and the map crop `map_pieces` / `map_anchor`), for the first
-  `num_scenes` scenes of `path`; each timed call follows an untimed one of the
-  same scene (its compile). Ratios are CPU time against "sized"."""
+  of `variants`, all `num_rollouts` in one call: "full" (every plan in the cap's
+  65 slots), "sized" (slots sized to the scene, `WosacConfig.size_plans`) and
+  "cropped" (sized, and the map crop `map_pieces` / `map_anchor`); and
+  "sized_per_call{N}" for each N of `per_call` (sized, N rollouts per call), for
+  the first `num_scenes` scenes of `path`; each timed call follows an untimed one
+  of the same scene (its compile). Ratios are CPU time against "sized"."""
   from pcdiff_jax import evaluation, wosac
   from pcdiff_jax.data import womd
   crops = {"full": {}, "sized": {}, "cropped": {"map_pieces": map_pieces, "map_anchor": map_anchor}}
+  configs = {name: (crops[name], num_rollouts, name != "full") for name in variants}
+  configs.update({f"sized_per_call{n}": ({}, n, True) for n in per_call})
   sims = {name: wosac.Simulator(wosac.WosacConfig(
-      eval=evaluation.EvalConfig(method="pcdiff", checkpoint=checkpoint, **crops[name]),
-      num_rollouts=num_rollouts, rollouts_per_call=num_rollouts, size_plans=name != "full"))
-      for name in variants}
+      eval=evaluation.EvalConfig(method="pcdiff", checkpoint=checkpoint, **crop),
+      num_rollouts=num_rollouts, rollouts_per_call=calls, size_plans=sized))
+      for name, (crop, calls, sized) in configs.items()}
   rows = []
   for state, meta in womd.iterate([path], with_meta=True, history_only=True, max_num_objects=None,
                                   max_scenarios=num_scenes, to_jax=False):
@@ -513,6 +517,8 @@ def main(argv=None) -> int:
   p.add_argument("--wosac-variants", nargs="+", default=["full", "sized"], choices=("full", "sized", "cropped"),
                  help="wosac: 65 slots, slots sized to the scene (the default), sized + the map crop below")
   p.add_argument("--wosac-map-pieces", type=int, default=128, help="wosac: the cropped variant's map pieces")
+  p.add_argument("--wosac-rollouts-per-call", type=int, nargs="*", default=[],
+                 help="wosac: also the sized variant at N rollouts per call, for each N")
   p.add_argument("--wosac-map-anchor", default="sdc", choices=("sdc", "agents"),
                  help="wosac: the cropped variant's map anchor")
   p.add_argument("--sections", nargs="+", default=[s for s in SECTIONS if s not in ("devices", "wosac")],
@@ -555,7 +561,8 @@ def main(argv=None) -> int:
     checkpoint = args.wosac_checkpoint or shipped.checkpoint_dir()
     results["wosac_plans"] = bench_wosac_plans(args.scenarios, checkpoint, args.wosac_scenes,
                                                args.wosac_rollouts, args.wosac_variants,
-                                               args.wosac_map_pieces, args.wosac_map_anchor)
+                                               args.wosac_map_pieces, args.wosac_map_anchor,
+                                               args.wosac_rollouts_per_call)
   print(json.dumps(results, indent=2))
   if args.json:
     with open(args.json, "w") as f:

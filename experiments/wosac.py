@@ -85,8 +85,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="pcdiff: objective guidance (map and collision costs) with its default weights")
   p.add_argument("--num-rollouts", type=int, default=submission.NUM_ROLLOUTS,
                  help="rollouts per scenario (the challenge needs 32; fewer only for quick tests)")
-  p.add_argument("--rollouts-per-call", type=int, default=submission.NUM_ROLLOUTS,
-                 help="rollouts per jitted call (lower it to save memory)")
+  p.add_argument("--rollouts-per-call", type=int, default=None,
+                 help="rollouts per jitted call (default: all on a GPU, 4 on a CPU; lower it to save memory)")
   p.add_argument("--max-objects", type=int, default=None,
                  help="padded objects per scenario (default: 128, 256, ... whichever first holds the scene)")
   p.add_argument("--shard", type=_shard, default=None, metavar="INDEX/COUNT",

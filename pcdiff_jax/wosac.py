@@ -55,7 +55,10 @@ class WosacConfig:
   checkpoint, sampler, seed; `metrics.max_reactive_agents` is a learned
   method's cap of sim agents besides the SDC). ego: "method" (the method
   drives the SDC too) or "idm". num_rollouts: 32 for a valid submission.
-  rollouts_per_call: rollouts per jitted call (memory against speed).
+  rollouts_per_call: rollouts per jitted call, or None (default) for `default_rollouts_per_call`
+  of the backend: all 32 in one call on an accelerator, 4 on a CPU, where a smaller batch stays
+  in cache (docs/BENCHMARKS.md, "WOSAC at WOMD scale"). The rollouts are the same either way up to
+  float rounding: each has its own key.
   max_objects: padded object count, or None (default) for the first of
   `womd.OBJECT_BUCKETS` (128, 256, ...) that holds each scene: no scene is
   refused for its size, and the closed loop compiles once per bucket. hold_lights: step 10's traffic lights for the whole rollout.
@@ -65,7 +68,7 @@ class WosacConfig:
   eval: evaluation.EvalConfig = evaluation.EvalConfig()
   ego: str = "method"
   num_rollouts: int = submission.NUM_ROLLOUTS
-  rollouts_per_call: int = submission.NUM_ROLLOUTS
+  rollouts_per_call: Optional[int] = None
   max_objects: Optional[int] = None
   hold_lights: bool = True
   size_plans: bool = True
@@ -76,10 +79,21 @@ class WosacConfig:
                        "(log replay and the expert read the logged future)")
     if self.ego not in EGOS:
       raise ValueError(f"unknown ego {self.ego!r}; choose one of {list(EGOS)}")
-    if self.num_rollouts < 1 or self.rollouts_per_call < 1:
+    if self.num_rollouts < 1 or (self.rollouts_per_call is not None and self.rollouts_per_call < 1):
       raise ValueError("num_rollouts and rollouts_per_call must be >= 1")
     if self.eval.num_steps != submission.NUM_SIM_STEPS or self.eval.init_steps != submission.CURRENT_INDEX + 1:
       raise ValueError("WOSAC simulates steps 11-90: keep num_steps=80 and init_steps=11")
+
+
+CPU_ROLLOUTS_PER_CALL = 4
+
+
+def default_rollouts_per_call(num_rollouts: int, platform: Optional[str] = None) -> int:
+  """Rollouts per jitted call when the config leaves it open: every rollout on an accelerator
+  (one wide batch), CPU_ROLLOUTS_PER_CALL on a CPU (1.19x less CPU time than 32 per call for a
+  16-slot scene; docs/BENCHMARKS.md, "WOSAC at WOMD scale")."""
+  platform = platform or jax.default_backend()
+  return num_rollouts if platform != "cpu" else min(num_rollouts, CPU_ROLLOUTS_PER_CALL)
 
 
 def sim_agents_mask(state) -> jax.Array:
@@ -278,7 +292,7 @@ class Simulator:
     log_valid = np.asarray(state.log_trajectory.valid)
     agents = np.nonzero(log_valid[:, current])[0]
     keys = rollout_keys(cfg.eval.seed, scenario_id, cfg.num_rollouts)
-    per_call = min(cfg.rollouts_per_call, cfg.num_rollouts)
+    per_call = min(cfg.rollouts_per_call or default_rollouts_per_call(cfg.num_rollouts), cfg.num_rollouts)
     calls = -(-cfg.num_rollouts // per_call)
     keys = jnp.concatenate([keys, jnp.repeat(keys[-1:], calls * per_call - cfg.num_rollouts, 0)])
     tiled = jax.tree_util.tree_map(lambda a: jnp.repeat(jnp.asarray(a)[None], per_call, 0), state)

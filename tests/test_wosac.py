@@ -415,6 +415,14 @@ def test_plan_cap_is_the_first_bucket_that_holds_the_scene():
   assert wosac.plan_cap(20, 24) == 24 and wosac.plan_cap(3, 8) == 8
 
 
+def test_rollouts_per_call_default_to_one_wide_batch_on_an_accelerator_and_four_on_a_cpu():
+  assert wosac.default_rollouts_per_call(32, "gpu") == 32
+  assert wosac.default_rollouts_per_call(32, "cpu") == wosac.CPU_ROLLOUTS_PER_CALL == 4
+  assert wosac.default_rollouts_per_call(2, "cpu") == 2
+  with pytest.raises(ValueError, match="rollouts_per_call"):
+    wosac.WosacConfig(rollouts_per_call=0).validate()
+
+
 def test_more_plan_slots_leave_the_valid_agents_plans_as_they_are(tiny_models):
   """What sizing the plan to the scene rests on: the same scene (4 agents) in 4
   or 8 agent slots gives its agents the same prior and denoiser output (the
