@@ -31,7 +31,8 @@ field: `default_actor_init_ms`). Compile time is excluded and reported separatel
 
 `wosac` (not in the default sections): seconds per scene of a WOSAC export
 of ours (`--wosac-checkpoint`) with every plan in 65 agent slots, plans sized
-to the scene (`wosac.plan_cap`) and sized plans with a smaller map crop
+to the scene (`wosac.plan_cap`), sized plans with a copy of the scene per
+rollout (the older path) and sized plans with a smaller map crop
 (`--wosac-variants`), all rollouts in one call, and sized plans at N rollouts
 per call (`--wosac-rollouts-per-call`), scene by scene, compile excluded.
 
@@ -456,15 +457,20 @@ def bench_wosac_plans(path: str, checkpoint: str, num_scenes: int, num_rollouts:
   "cropped" (sized, and the map crop `map_pieces` / `map_anchor`); and
   "sized_per_call{N}" for each N of `per_call` (sized, N rollouts per call), for
   the first `num_scenes` scenes of `path`; each timed call follows an untimed one
-  of the same scene (its compile). Ratios are CPU time against "sized"."""
+  of the same scene (its compile). "tiled" (and "tiled_per_call{N}") give each
+  rollout its own copy of the scene (`WosacConfig.tile_scene`, the older path).
+  Ratios are CPU time against "sized"."""
   from pcdiff_jax import evaluation, wosac
   from pcdiff_jax.data import womd
-  crops = {"full": {}, "sized": {}, "cropped": {"map_pieces": map_pieces, "map_anchor": map_anchor}}
+  crops = {"full": {}, "sized": {}, "tiled": {}, "cropped": {"map_pieces": map_pieces, "map_anchor": map_anchor}}
   configs = {name: (crops[name], num_rollouts, name != "full") for name in variants}
   configs.update({f"sized_per_call{n}": ({}, n, True) for n in per_call})
+  if "tiled" in variants:
+    configs.update({f"tiled_per_call{n}": ({}, n, True) for n in per_call})
   sims = {name: wosac.Simulator(wosac.WosacConfig(
       eval=evaluation.EvalConfig(method="pcdiff", checkpoint=checkpoint, **crop),
-      num_rollouts=num_rollouts, rollouts_per_call=calls, size_plans=sized))
+      num_rollouts=num_rollouts, rollouts_per_call=calls, size_plans=sized,
+      tile_scene=name.startswith("tiled")))
       for name, (crop, calls, sized) in configs.items()}
   rows = []
   for state, meta in womd.iterate([path], with_meta=True, history_only=True, max_num_objects=None,
@@ -514,8 +520,9 @@ def main(argv=None) -> int:
                  help="wosac: the learned model (default: the shipped one, pcdiff_jax.shipped.checkpoint_dir())")
   p.add_argument("--wosac-scenes", type=int, default=4, help="wosac: the first N scenes of --scenarios")
   p.add_argument("--wosac-rollouts", type=int, default=32, help="wosac: rollouts per scene (one jitted call)")
-  p.add_argument("--wosac-variants", nargs="+", default=["full", "sized"], choices=("full", "sized", "cropped"),
-                 help="wosac: 65 slots, slots sized to the scene (the default), sized + the map crop below")
+  p.add_argument("--wosac-variants", nargs="+", default=["full", "sized"], choices=("full", "sized", "tiled", "cropped"),
+                 help="wosac: 65 slots, slots sized to the scene (the default), sized with a copy of the scene "
+                      "per rollout (also at each N below), sized + the map crop below")
   p.add_argument("--wosac-map-pieces", type=int, default=128, help="wosac: the cropped variant's map pieces")
   p.add_argument("--wosac-rollouts-per-call", type=int, nargs="*", default=[],
                  help="wosac: also the sized variant at N rollouts per call, for each N")

@@ -158,18 +158,22 @@ def with_agent_cap(model_cfg, metrics: MetricsConfig):
   return dataclasses.replace(model_cfg, features=features)
 
 
-def make_rollout_fn(actor: Actor, cfg: EvalConfig, mesh: Optional[Mesh] = None):
+def make_rollout_fn(actor: Actor, cfg: EvalConfig, mesh: Optional[Mesh] = None,
+                    one_scene: bool = False):
   """jit(vmap) of reset -> closed-loop rollout, per scenario:
   (states (B,), rngs (B,), params) -> final states. The params (model weights)
   are an argument, not a constant baked into the program. With a `mesh`
   (`pcdiff_jax.distributed.data_mesh`) the B scenarios are split along its
-  `data` axis (B a multiple of its devices) and the params replicated."""
+  `data` axis (B a multiple of its devices) and the params replicated.
+  one_scene: (state, rngs (B,), params) -> B rollouts of one unbatched scene;
+  what depends on the scene alone (the policy's road field, the map's arcs)
+  is then computed once per call instead of once per rollout."""
   align = cfg.align_headings and cfg.method != "log"
 
   def one(state, rng, params):
     start = env.simulated_start(state, cfg.init_steps, align)
     return env.rollout(start, actor, cfg.num_steps, rng, params=params).final_state
-  fn = jax.vmap(one, in_axes=(0, 0, None))
+  fn = jax.vmap(one, in_axes=(None if one_scene else 0, 0, None))
   if mesh is None:
     return jax.jit(fn)
   data = distributed.batch_sharded(mesh)

@@ -64,7 +64,11 @@ class WosacConfig:
   refused for its size, and the closed loop compiles once per bucket. hold_lights: step 10's traffic lights for the whole rollout.
   size_plans: a learned method plans a scene in the fewest of 16, 32, 64, ... agent slots
   (`plan_slots`) that hold its sim agents, up to its cap: less work on small scenes, the same
-  model but other random draws than the full cap (False: always the cap's slots)."""
+  model but other random draws than the full cap (False: always the cap's slots).
+  tile_scene: each rollout of a call gets its own copy of the scene, so what depends on the
+  scene alone (the road field) is computed per rollout; False (default) shares one copy
+  (`evaluation.make_rollout_fn(one_scene=True)`), the same rollouts up to float rounding for
+  less CPU (docs/BENCHMARKS.md, "WOSAC at WOMD scale"; `bench` times the two)."""
   eval: evaluation.EvalConfig = evaluation.EvalConfig()
   ego: str = "method"
   num_rollouts: int = submission.NUM_ROLLOUTS
@@ -72,6 +76,7 @@ class WosacConfig:
   max_objects: Optional[int] = None
   hold_lights: bool = True
   size_plans: bool = True
+  tile_scene: bool = False
 
   def validate(self) -> None:
     if self.eval.method not in METHODS + (LOG_REPLAY,):
@@ -235,7 +240,7 @@ class Simulator:
       return
     if cfg.eval.method not in evaluation.LEARNED:
       self.actor, self.params = make_actor(cfg)
-      self.run = evaluation.make_rollout_fn(self.actor, cfg.eval)
+      self.run = evaluation.make_rollout_fn(self.actor, cfg.eval, one_scene=not cfg.tile_scene)
       return
     cfg.validate()
     full = self._runs_at(cfg.eval.metrics.max_reactive_agents)
@@ -251,8 +256,9 @@ class Simulator:
       alone, params_alone = drive_all(actor, models, learned=True, ego=cfg.ego, fallback=False)
       self._by_cap[cap] = _LearnedRuns(
           learned=with_sdc(actor) if cfg.ego == "method" else actor,
-          run=evaluation.make_rollout_fn(with_fallback, cfg.eval), params=params,
-          run_alone=evaluation.make_rollout_fn(alone, cfg.eval), params_alone=params_alone)
+          run=evaluation.make_rollout_fn(with_fallback, cfg.eval, one_scene=not cfg.tile_scene), params=params,
+          run_alone=evaluation.make_rollout_fn(alone, cfg.eval, one_scene=not cfg.tile_scene),
+          params_alone=params_alone)
     return self._by_cap[cap]
 
   def needs_fallback(self, state, learned: Optional[Actor] = None) -> bool:
@@ -295,13 +301,16 @@ class Simulator:
     per_call = min(cfg.rollouts_per_call or default_rollouts_per_call(cfg.num_rollouts), cfg.num_rollouts)
     calls = -(-cfg.num_rollouts // per_call)
     keys = jnp.concatenate([keys, jnp.repeat(keys[-1:], calls * per_call - cfg.num_rollouts, 0)])
-    tiled = jax.tree_util.tree_map(lambda a: jnp.repeat(jnp.asarray(a)[None], per_call, 0), state)
+    if cfg.tile_scene:
+      scene = jax.tree_util.tree_map(lambda a: jnp.repeat(jnp.asarray(a)[None], per_call, 0), state)
+    else:
+      scene = jax.tree_util.tree_map(jnp.asarray, state)
     run, params = self.run, self.params
     if self.learned is not None:
       run, params, _ = self.learned_run(state)
     parts = []
     for c in range(calls):
-      final = run(tiled, keys[c * per_call:(c + 1) * per_call], params)
+      final = run(scene, keys[c * per_call:(c + 1) * per_call], params)
       traj = final.sim_trajectory
       fields = jax.device_get((traj.x, traj.y, traj.z, traj.yaw, traj.valid))
       parts.append([np.asarray(f)[:, agents, current + 1:] for f in fields])

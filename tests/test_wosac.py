@@ -352,8 +352,9 @@ def test_the_official_evaluator_scores_log_replay_on_the_real_record(womd_path, 
 
 def test_the_fallback_is_left_out_only_where_it_drives_nobody(tiny_models):
   """A scene whose sim agents the learned actor drives all of rolls out the
-  same without the IDM fallback (every actor gets the same key), up to the
-  rounding of a differently compiled program."""
+  same without the IDM fallback (every actor gets the same key), and with one
+  copy of the scene for all rollouts, up to the rounding of a differently
+  compiled program."""
   import dataclasses
   from conftest import make_scene
   from pcdiff_jax import evaluation, policy
@@ -377,6 +378,9 @@ def test_the_fallback_is_left_out_only_where_it_drives_nobody(tiny_models):
       final = evaluation.make_rollout_fn(actor, ev)(tiled, rngs, params)
       runs[fallback] = np.asarray(final.sim_trajectory.x)
     assert np.allclose(runs[True], runs[False], atol=1e-3)   # two compiled programs: float rounding
+    # The scene shared by the rollouts of a call (the export's default) instead of a copy each.
+    shared = evaluation.make_rollout_fn(actor, ev, one_scene=True)(state, rngs, params)
+    assert np.allclose(np.asarray(shared.sim_trajectory.x), runs[False], atol=1e-3)
 
 
 def test_an_interrupted_export_keeps_the_scenarios_it_finished(womd_path, tmp_path, monkeypatch, capsys):
