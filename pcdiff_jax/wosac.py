@@ -25,6 +25,7 @@ time in one jitted, vmapped closed loop (`evaluation.make_rollout_fn`).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import os
 import time
@@ -211,6 +212,23 @@ def plan_cap(num_sim_agents: int, cap: int) -> int:
   return min(bucket, cap)
 
 
+@functools.lru_cache(maxsize=64)
+def _uncovered_sim_agents(learned: Actor, init_steps: int, idm_ego: bool):
+  """jit(state -> () bool): a sim agent at the start is outside the learned
+  actor's controlled set (the SDC counts as covered under the IDM ego). Jitted,
+  so the rest of the actor's init (its road field) is never computed."""
+  from pcdiff_jax.sim import env
+
+  def uncovered(state):
+    reset = env.reset(state, init_steps)
+    inner = learned.init(jax.random.PRNGKey(0), reset)
+    covered = inner if isinstance(inner, jax.Array) else inner.controlled
+    if idm_ego:
+      covered = covered | reset.object_metadata.is_sdc
+    return jnp.any(sim_agents_mask(reset) & ~covered)
+  return jax.jit(uncovered)
+
+
 @dataclasses.dataclass(frozen=True)
 class _LearnedRuns:
   """A learned method's jitted closed loops at one agent cap: with the IDM
@@ -265,13 +283,9 @@ class Simulator:
     """Whether a sim agent of this (unbatched, loaded) scene is left to the
     IDM fallback: the learned actor's (default: at the full cap) controlled
     set at `init`, outside jit."""
-    from pcdiff_jax.sim import env
-    reset = env.reset(state, self.cfg.eval.init_steps)
-    inner = (learned or self.learned).init(jax.random.PRNGKey(0), reset)
-    covered = np.asarray(inner if isinstance(inner, jax.Array) else inner.controlled)
-    if self.cfg.ego == "idm":
-      covered = covered | np.asarray(reset.object_metadata.is_sdc)
-    return bool((np.asarray(sim_agents_mask(reset)) & ~covered).any())
+    uncovered = _uncovered_sim_agents(learned or self.learned, self.cfg.eval.init_steps, self.cfg.ego == "idm")
+    return bool(uncovered(state))
+
 
   def learned_run(self, state) -> tuple[Any, Any, int]:
     """(run, params, cap) of a learned method for one loaded scene: the agent
