@@ -1,4 +1,5 @@
-"""Closed-loop diagnostics: why a policy leaves its log (replay, drift, first action, parked cars).
+"""Closed-loop diagnostics: why a policy leaves its log (replay, drift, first action, parked cars,
+slow starters).
 
   python -m experiments.diagnose --checkpoint runs/cpu --scenarios runs/val20.tfrecord replay
   python -m experiments.diagnose --checkpoint runs/cpu --scenarios runs/val20.tfrecord drift --method pcdiff
@@ -32,6 +33,13 @@ parked        open-loop plans for the vehicles parked in the log (path under
               most likely proposal noised to each of `--warm-steps` (one DDIM
               step, as a warm replan), against the proposal itself decoded.
               A parked car whose plans end metres away creeps in closed loop.
+starters      the evaluated agents (WOSAC's: the SDC and tracks_to_predict)
+              that start slower than 3 m/s and travel more than 5 m in the
+              log: the 8 s travel of each of the encoder's proposals at the
+              rollout start against the log's, their probability-weighted
+              mean, and whether the still gate holds the agent. Proposals
+              that stop a car the log drives away keep it still in closed
+              loop (WOSAC's linear-speed likelihood).
 first-action  the first action [accel, yaw rate] of the plans the policy
               makes at the rollout start, against the log's, for moving
               vehicles (> 2 m/s): a mean yaw rate far from the log's is a
@@ -348,6 +356,54 @@ def _diffusion_steps(text: str) -> tuple[int, ...]:
   return steps
 
 
+STARTER_SPEED = 3.0    # m/s: `starters` covers the agents slower than this at the start
+STARTER_TRAVEL = 5.0   # m: ... that the log carries further than this within the horizon
+
+
+def starters(args, models, cfg, batch, num) -> list[dict]:
+  """Per slow starter of the log: its proposals' 8 s travel (m) and probabilities, the
+  log's travel and the still gate's decision, at the rollout start."""
+  pcfg = policy.PolicyConfig()
+  horizon = cfg.encoder.horizon
+
+  def one(state):
+    start = env.simulated_start(state, evaluation.EvalConfig().init_steps)
+    scene = policy.encode(models, start, cfg, pcfg, policy.reactive_set(start, cfg))
+    cond, feats = scene.cond, scene.feats
+    actions = dynamics.clip_action(latent.decode(cond.proposals, models.stats), cfg.kinematics)
+    speed = jnp.broadcast_to(cond.speed[..., None], cond.proposals.shape[:-1])
+    ends = dynamics.rollout(latent.initial_states(speed), actions, cfg.kinematics.dt)[..., -1, :2]
+    log = jax.lax.dynamic_slice_in_dim(start.log_trajectory.xy, start.timestep, horizon + 1, 1)
+    valid = jax.lax.dynamic_slice_in_dim(start.log_trajectory.valid, start.timestep, horizon + 1, 1)
+    last = jnp.max(jnp.where(valid, jnp.arange(horizon + 1), 0), -1)                    # (O,)
+    log_travel = jnp.linalg.norm(jnp.take_along_axis(log, last[:, None, None], 1)[:, 0] - log[:, 0], axis=-1)
+    md = start.object_metadata
+    evaluated = (md.is_modeled | md.is_sdc)[feats.agent_index] & feats.agent_valid
+    hold = scene.hold if scene.hold is not None else jnp.zeros_like(evaluated)
+    return (jnp.linalg.norm(ends, axis=-1)[0], cond.probs[0], cond.speed[0], hold,
+            log_travel[feats.agent_index], evaluated, feats.agent_index)
+
+  travel, probs, speed, hold, log_travel, evaluated, index = (
+      np.asarray(a) for a in jax.jit(jax.vmap(one))(batch))
+  rows = []
+  for b, a in zip(*np.nonzero(evaluated & (np.abs(speed) < STARTER_SPEED) & (log_travel > STARTER_TRAVEL))):
+    order = np.argsort(-probs[b, a])
+    expected = float(np.sum(probs[b, a] * travel[b, a]))
+    rows.append(dict(scene=int(b), object=int(index[b, a]), speed=float(speed[b, a]),
+                     log_travel=float(log_travel[b, a]), expected_travel=expected, held=bool(hold[b, a]),
+                     proposals=[[float(travel[b, a, k]), float(probs[b, a, k])] for k in order]))
+    print(f"| {b} | {index[b, a]} | {speed[b, a]:.2f} | {log_travel[b, a]:.1f} | {expected:.1f} | "
+          f"{'yes' if hold[b, a] else 'no'} | "
+          + " ".join(f"{travel[b, a, k]:.1f} @ {probs[b, a, k]:.2f}" for k in order) + " |")
+  if rows:
+    ratio = np.median([r["expected_travel"] / r["log_travel"] for r in rows])
+    print(f"\n{len(rows)} slow starters; median expected proposal travel / log travel {ratio:.2f}; "
+          f"held by the still gate {sum(r['held'] for r in rows)}")
+  else:
+    print("no evaluated agent starts slowly and pulls away in the log")
+  return rows
+
+
 def main(argv=None) -> None:
   p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
   p.add_argument("--checkpoint", required=True, help="diffusion training workdir (e.g. runs/cpu)")
@@ -373,6 +429,7 @@ def main(argv=None) -> None:
   f = sub.add_parser("first-action", help="first planned action against the log's")
   f.add_argument("--ddim-steps", type=int, default=5)
   f.add_argument("--no-prior", dest="prior", action="store_false")
+  sub.add_parser("starters", help="the proposals of evaluated agents that start slowly and pull away in the log")
   k = sub.add_parser("parked", help="open-loop plans of the log's parked vehicles")
   k.add_argument("--samples", type=int, default=16)
   k.add_argument("--warm-steps", default=(30, 90), type=_diffusion_steps,
@@ -404,7 +461,9 @@ def main(argv=None) -> None:
                        + (" solo: speed - log's | joint, same agents | solo agents |"
                           if getattr(args, "solo", False) else "")),
              "first-action": "| plan | yaw rate mean (rad/s) | yaw rate abs | accel mean (m/s^2) | agents |",
-             "parked": "| plans of parked vehicles | median end (m) | share > 1 m | share > 5 m | agents |"}
+             "parked": "| plans of parked vehicles | median end (m) | share > 1 m | share > 5 m | agents |",
+             "starters": ("| scene | object | speed (m/s) | log travel (m) | expected proposal travel (m) | "
+                          "held | proposals: travel (m) @ probability |")}
   print(headers[args.section])
   print("|" + "---|" * (headers[args.section].count("|") - 1))
   if args.section == "replay":
@@ -413,6 +472,8 @@ def main(argv=None) -> None:
     rows = drift(args, models, cfg, batch, num)
   elif args.section == "parked":
     rows = parked(args, models, cfg, batch, num)
+  elif args.section == "starters":
+    rows = starters(args, models, cfg, batch, num)
   else:
     rows = first_action(args, models, cfg, batch, num)
   if args.out:

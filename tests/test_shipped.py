@@ -84,3 +84,21 @@ def test_every_model_folder_with_weights_has_a_card_and_loads_by_name(model):
     assert os.path.exists(os.path.join(root, name, "MODEL_CARD.md")), name
     models, cfg = pcdiff_jax.pretrained(name)
     assert models.stats.dim == cfg.diffusion.latent_dim, name
+
+
+def test_diagnose_starters_lists_the_slow_agents_the_log_drives_away(womd_path, tmp_path):
+  """`experiments.diagnose starters` on the real record: every row is an evaluated agent slower
+  than 3 m/s at the start that the log carries more than 5 m, with the model's six proposals
+  (probabilities summing to 1) and their probability-weighted travel."""
+  import json
+  from experiments import diagnose
+  out = tmp_path / "starters.json"
+  diagnose.main(["--checkpoint", shipped.checkpoint_dir(), "--scenarios", womd_path, "--num-scenes", "1",
+                 "--out", str(out), "starters"])
+  rows = json.loads(out.read_text())["rows"]
+  assert rows, "the real record has a slow starter (a car that pulls away from standstill)"
+  for row in rows:
+    assert abs(row["speed"]) < diagnose.STARTER_SPEED and row["log_travel"] > diagnose.STARTER_TRAVEL
+    travel, probs = np.array(row["proposals"]).T
+    assert len(probs) == 6 and probs.sum() == pytest.approx(1.0, abs=1e-4) and np.all(np.diff(probs) <= 0)
+    assert row["expected_travel"] == pytest.approx(float(np.sum(travel * probs)), rel=1e-5)
