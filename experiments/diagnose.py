@@ -59,7 +59,7 @@ import numpy as np
 from experiments import _args
 from pcdiff_jax import evaluation, metrics as metrics_lib, policy
 from pcdiff_jax.config import get_config
-from pcdiff_jax.data import womd
+from pcdiff_jax.data import realism, womd
 from pcdiff_jax.model import encoder, features as features_lib, latent, planner
 from pcdiff_jax.sim import dynamics, env
 from pcdiff_jax.sim.actors import Actor, ActorOutput
@@ -356,10 +356,6 @@ def _diffusion_steps(text: str) -> tuple[int, ...]:
   return steps
 
 
-STARTER_SPEED = 3.0    # m/s: `starters` covers the agents slower than this at the start
-STARTER_TRAVEL = 5.0   # m: ... that the log carries further than this within the horizon
-
-
 def starters(args, models, cfg, batch, num) -> list[dict]:
   """Per slow starter of the log: its proposals' 8 s travel (m) and probabilities, the
   log's travel and the still gate's decision, at the rollout start."""
@@ -386,7 +382,8 @@ def starters(args, models, cfg, batch, num) -> list[dict]:
   travel, probs, speed, hold, log_travel, evaluated, index = (
       np.asarray(a) for a in jax.jit(jax.vmap(one))(batch))
   rows = []
-  for b, a in zip(*np.nonzero(evaluated & (np.abs(speed) < STARTER_SPEED) & (log_travel > STARTER_TRAVEL))):
+  for b, a in zip(*np.nonzero(evaluated & (np.abs(speed) < realism.STARTER_SPEED)
+                          & (log_travel > realism.STARTER_TRAVEL))):
     order = np.argsort(-probs[b, a])
     expected = float(np.sum(probs[b, a] * travel[b, a]))
     rows.append(dict(scene=int(b), object=int(index[b, a]), speed=float(speed[b, a]),

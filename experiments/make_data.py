@@ -35,6 +35,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="restrict to these map families (default: all, weighted)")
   p.add_argument("--surface-limit-stretch", type=float, default=1.0,
                  help="widen surface-street speed limits upwards (1: the benchmark's; 2: 10-24 m/s on roads)")
+  p.add_argument("--warmup-seconds", type=float, default=1.2,
+                 help="traffic simulated before each log starts (1.2: the benchmark's; 30: queues "
+                      "at lights and stop signs, as in real scenes)")
   p.add_argument("--stats", metavar="DIR", help="write the realism report for DIR instead")
   p.add_argument("--real", default=REAL_SAMPLE, help="real WOMD record to compare with")
   p.add_argument("--num-scenes", type=int, default=200, help="scenes read for --stats")
@@ -47,6 +50,8 @@ def parse_args(argv=None) -> argparse.Namespace:
       p.error(f"--{name.replace('_', '-')} must be >= 0")
   if not 1.0 <= args.surface_limit_stretch <= 3.0:
     p.error("--surface-limit-stretch must be within [1, 3]")
+  if not 0.0 <= args.warmup_seconds <= 120.0:
+    p.error("--warmup-seconds must be within [0, 120]")
   for name in ("shard_size", "max_rg_points", "num_scenes", "metric_scenes"):
     if getattr(args, name) < 1:
       p.error(f"--{name.replace('_', '-')} must be >= 1")
@@ -69,7 +74,8 @@ def _generate(args) -> int:
   if args.families:
     weights = tuple((f, w) for f, w in DEFAULT_FAMILY_WEIGHTS if f in args.families)
   cfg = SyntheticConfig(max_rg_points=args.max_rg_points, family_weights=weights,
-                        surface_limit_stretch=args.surface_limit_stretch)
+                        surface_limit_stretch=args.surface_limit_stretch,
+                        warmup_steps=round(args.warmup_seconds * 10))
   with tqdm(total=args.num_train + args.num_val, desc="scenes", unit="scene") as bar:
     stats = write_dataset(args.out, args.num_train, args.num_val, args.seed, cfg,
                           shard_size=args.shard_size, workers=args.workers, on_progress=bar.update)

@@ -27,9 +27,10 @@ def dataset_files(data_dir: str, split: Optional[str] = None) -> list[str]:
   raise FileNotFoundError(f"no {' or '.join(splits)} shards (*-XXXXX-of-YYYYY.tfrecord) in {data_dir}")
 
 
-def _read(paths, limit: int) -> tuple[list, list[str]]:
+def _read(paths, limit: int, max_num_objects: Optional[int] = 128) -> tuple[list, list[str]]:
   states, ids = [], []
-  for state, meta in womd.iterate(paths, with_meta=True, to_jax=False, on_error="skip"):
+  for state, meta in womd.iterate(paths, max_num_objects=max_num_objects, with_meta=True, to_jax=False,
+                                  on_error="skip"):
     states.append(state)
     ids.append(meta.scenario_id)
     if len(states) >= limit:
@@ -43,14 +44,17 @@ def log_event_rates(states: list, batch_size: int = 8) -> dict:
   import jax.numpy as jnp
   from pcdiff_jax import evaluation
   from pcdiff_jax.sim import metrics
-  score = evaluation.make_score_fn(evaluation.EvalConfig(method="log"))
+  cfg = evaluation.EvalConfig(method="log")
+  actor, params = evaluation.make_actor(cfg)
+  rollout, score = evaluation.make_rollout_fn(actor, cfg), evaluation.make_score_fn(cfg)
   totals = None
   for k in range(0, len(states), batch_size):
     chunk = states[k:k + batch_size]
     chunk = chunk + [chunk[-1]] * (batch_size - len(chunk))   # one padded size, one compile
     batch = jax.tree_util.tree_map(lambda *xs: jnp.asarray(np.stack(xs)), *chunk)
     n = min(batch_size, len(states) - k)
-    counts = jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], score(batch).events)
+    final = rollout(batch, jax.random.split(jax.random.PRNGKey(0), batch_size), params)
+    counts = jax.tree_util.tree_map(lambda a: np.asarray(a)[:n], score(final).events)
     totals = counts if totals is None else jax.tree_util.tree_map(lambda a, b: np.concatenate([a, b]), totals, counts)
   rates = metrics.EventCounts(**{k: jnp.asarray(v) for k, v in dataclasses.asdict(totals).items()}).rates()
   return {k: float(v) for k, v in rates.items()}
@@ -76,7 +80,7 @@ def write_report(data_dir: str, real_path: Optional[str], out_dir: Optional[str]
   summaries = {"synthetic": realism.summarize(states)}
   real_states = []
   if real_path and os.path.exists(real_path):
-    real_states, _ = _read(real_path, 10**9)
+    real_states, _ = _read(real_path, 10**9, max_num_objects=None)   # real scenes of any size
     summaries["real WOMD sample"] = realism.summarize(real_states)
   report = {
       "data_dir": data_dir, "files": files, "num_scenes": len(states), "scene_types": scene_types(ids),

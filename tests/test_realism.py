@@ -180,6 +180,27 @@ def test_summarize_synthetic_and_report(tmp_path):
   assert (tmp_path / "h.png").stat().st_size > 1000 and out == tmp_path / "h.png"
 
 
+def test_motion_classes_counts_still_starting_and_moving_vehicles():
+  steps = realism.CURRENT_STEP + 81
+  still = straight(speed=0.0, steps=steps)                     # parked
+  starter = straight(speed=0.0, accel=1.0, steps=steps)        # 0 m/s at the start, then away
+  starter = make_traj(starter.x, starter.y, np.where(np.arange(steps) < realism.CURRENT_STEP, 0.0,
+                                                     starter.vel_x), starter.vel_y, starter.yaw)
+  mover = straight(speed=12.0, steps=steps)
+  creeper = straight(speed=0.5, steps=steps)                   # 4 m in the 8 s of log: neither
+  stack = lambda *ts: jax.tree_util.tree_map(lambda *a: np.concatenate(a), *ts)
+  traj = stack(still, starter, mover, creeper, mover)
+  types = np.array([1, 1, 1, 1, 2], np.int32)                  # the last is a pedestrian
+  counts = realism.motion_classes(traj, types)
+  assert {k: int(v) for k, v in counts.items()} == {"still": 1, "starters": 1, "movers": 1}
+  batched = realism.motion_classes(jax.tree_util.tree_map(lambda a: np.stack([a, a]), traj),
+                                   np.stack([types, types]))
+  np.testing.assert_array_equal(batched["starters"], [1, 1])
+  s = realism.summarize([traj], object_types=[types])
+  assert s["vehicles_per_scene"] == {"still": 1.0, "starters": 1.0, "movers": 1.0}
+  assert "| vehicles per scene | starters | 1 |" in realism.compare_markdown({"a": s})
+
+
 def test_summarize_real_sample(real_state):
   s = realism.summarize(real_state)
   json.dumps(s, allow_nan=False)

@@ -149,6 +149,7 @@ def test_project_metrics_on_logs(scenes):
   from experiments.realism_report import log_event_rates
   states = [group[0].state for group in scenes.values()]
   rates = log_event_rates(states, batch_size=len(states))
+  assert rates["num_evaluated"] > 10, rates   # the logs were rolled out and scored
   assert rates["collision_rate"] == 0 and rates["offroad_rate"] == 0, rates
 
 
@@ -186,6 +187,27 @@ def test_surface_limit_stretch_widens_only_the_surface_limits(family):
   assert stretched > 0
 
 
+def test_a_long_warm_up_queues_traffic_at_the_stop_lines():
+  """The generator places traffic free-flowing; a 30 s warm-up lets queues form at red lights
+  and stop signs before the log starts, so more of the scene's vehicles stand still or pull
+  away from standing (docs/DATA.md, "Queued traffic")."""
+  from pcdiff_jax.data import realism
+  weights = (("intersection", 1.0), ("t_junction", 1.0))
+
+  def counts(warmup_steps):
+    cfg = SyntheticConfig(warmup_steps=warmup_steps, family_weights=weights)
+    total = {k: 0 for k in realism.MOTION_CLASSES}
+    for index in range(6):
+      state = generate_scene(0, index, cfg).state
+      for k, v in realism.motion_classes(state.log_trajectory, state.object_metadata.object_types).items():
+        total[k] += int(v)
+    return total
+
+  short, long = counts(12), counts(300)
+  assert long["still"] + long["starters"] > 2 * (short["still"] + short["starters"]), (short, long)
+  assert long["movers"] < short["movers"], (short, long)
+
+
 def test_family_weights_are_complete():
   assert {f for f, _ in DEFAULT_FAMILY_WEIGHTS} == set(FAMILIES)
 
@@ -220,7 +242,8 @@ def test_make_data_cli_shards_resume_and_bytes(tmp_path):
 
 @pytest.mark.parametrize("argv", [[], ["--out", "x", "--num-train", "-1"], ["--out", "x", "--shard-size", "0"],
                                   ["--out", "x", "--families", "roundabout"],
-                                  ["--out", "x", "--surface-limit-stretch", "0.5"]])
+                                  ["--out", "x", "--surface-limit-stretch", "0.5"],
+                                  ["--out", "x", "--warmup-seconds", "-1"]])
 def test_make_data_bad_arguments(argv):
   from experiments import make_data
   with pytest.raises(SystemExit) as e:
@@ -236,6 +259,8 @@ def test_stats_report(tmp_path, womd_path):
   report = json.load(open(os.path.join(out, "realism.json")))
   assert set(report["summaries"]) == {"synthetic", "real WOMD sample"}
   assert report["log_rates"]["synthetic"]["collision_rate"] == 0
+  assert report["log_rates"]["synthetic"]["num_evaluated"] > 0
+  assert report["log_rates"]["real WOMD sample"]["num_evaluated"] > 0
   for name in ("realism.md", "realism_hist.png", "examples.png"):
     assert os.path.getsize(os.path.join(out, name)) > 1000, name
   assert make_data.main(["--stats", str(tmp_path / "missing")]) == 2

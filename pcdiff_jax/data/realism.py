@@ -55,6 +55,11 @@ THRESHOLDS = {
     "jerk": (10.0, 20.0),
     "yaw_rate": (0.5, 1.0),
 }
+# Vehicle motion classes (`motion_classes`): still vehicles travel less than STILL_TRAVEL m in
+# the whole future; starters are slower than STARTER_SPEED m/s at the current step and travel
+# more than STARTER_TRAVEL m; movers are at STARTER_SPEED or faster.
+STILL_TRAVEL, STARTER_SPEED, STARTER_TRAVEL = 1.0, 3.0, 5.0
+MOTION_CLASSES = ("still", "starters", "movers")
 STATISTICS = ("count", "mean", "std", "p1", "p5", "p50", "p95", "p99")
 CURRENT_STEP = NUM_PAST  # WOMD: 10 past steps, then the current one
 
@@ -195,6 +200,28 @@ def _stats(x: np.ndarray, name: str, edges: np.ndarray) -> dict[str, Any]:
   return out
 
 
+def motion_classes(traj: Trajectory, object_types: Array, current: int = CURRENT_STEP) -> dict[str, np.ndarray]:
+  """Per-scene counts of the vehicles valid at `current`, by how the log moves them.
+
+  traj: numpy Trajectory (..., O, T); object_types (..., O). Returns {class: (...,) int
+  counts} for MOTION_CLASSES, travel measured from `current` to the last valid step. Real
+  scenes are mostly still vehicles, with starters (queues released, cars pulling out)
+  among their movers; the synthetic generator makes queues only with a long warm-up
+  (docs/DATA.md, "Queued traffic").
+  """
+  valid = np.asarray(traj.valid)[..., current:]
+  xy = np.stack([np.asarray(traj.x), np.asarray(traj.y)], -1)[..., current:, :]
+  last = np.max(np.where(valid, np.arange(valid.shape[-1]), 0), -1)                  # (..., O)
+  end = np.take_along_axis(xy, last[..., None, None], -2)[..., 0, :]
+  travel = np.linalg.norm(end - xy[..., 0, :], axis=-1)
+  speed = np.hypot(np.asarray(traj.vel_x)[..., current], np.asarray(traj.vel_y)[..., current])
+  vehicle = valid[..., 0] & (np.asarray(object_types) == ObjectType.VEHICLE)
+  masks = {"still": travel < STILL_TRAVEL,
+           "starters": (speed < STARTER_SPEED) & (travel > STARTER_TRAVEL),
+           "movers": speed >= STARTER_SPEED}
+  return {k: np.sum(vehicle & m, -1) for k, m in masks.items()}
+
+
 def summarize(states_or_trajs, object_types=None, types: Sequence[int] = (ObjectType.VEHICLE,),
               dt: float = DT_SECONDS) -> dict[str, Any]:
   """Motion statistics pooled over many scenarios (host-side, numpy).
@@ -212,13 +239,18 @@ def summarize(states_or_trajs, object_types=None, types: Sequence[int] = (Object
     hist (on FIXED_BIN_EDGES[quantity])}} over the valid samples of the
     selected objects, plus `agents_per_scene` ({mean, min, max} of valid
     objects of any type at step CURRENT_STEP), `object_type_counts` ({type
-    name: objects valid at that step}, all types), `num_scenes` and `types`.
+    name: objects valid at that step}, all types), `vehicles_per_scene` (the mean count of
+    each of MOTION_CLASSES), `num_scenes` and `types`.
     Only lists, floats, ints, strs and None (JSON-serialisable).
   """
   pooled: dict[str, list[np.ndarray]] = {q: [] for q in QUANTITIES}
   agents: list[int] = []
   type_counts = {t.name: 0 for t in ObjectType}
+  classes: dict[str, list[np.ndarray]] = {k: [] for k in MOTION_CLASSES}
   for traj, obj_types in _items(states_or_trajs, object_types):
+    if traj.num_timesteps > CURRENT_STEP:
+      for k, v in motion_classes(traj, obj_types).items():
+        classes[k].append(np.reshape(v, -1))
     feats = motion_features(traj, dt)
     selected = np.isin(obj_types, np.asarray(types))[..., None]            # (..., O, 1)
     for q in QUANTITIES:
@@ -233,6 +265,7 @@ def summarize(states_or_trajs, object_types=None, types: Sequence[int] = (Object
                               "max": int(max(agents))} if agents else
                              {"mean": None, "min": None, "max": None})
   out["object_type_counts"] = type_counts
+  out["vehicles_per_scene"] = {k: float(np.mean(np.concatenate(v))) if v else None for k, v in classes.items()}
   out["num_scenes"] = len(agents)
   out["types"] = [ObjectType(int(t)).name for t in types]
   return out
@@ -277,6 +310,8 @@ def compare_markdown(summaries: Mapping[str, Mapping[str, Any]]) -> str:
   for t in ObjectType:
     row("objects at current step", t.name.lower(),
         [s.get("object_type_counts", {}).get(t.name) for s in summaries.values()])
+  for k in MOTION_CLASSES:
+    row("vehicles per scene", k, [s.get("vehicles_per_scene", {}).get(k) for s in summaries.values()])
   row("scenes", "count", [s.get("num_scenes") for s in summaries.values()])
   return "\n".join(rows) + "\n"
 
