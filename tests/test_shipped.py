@@ -92,13 +92,14 @@ def test_diagnose_starters_lists_the_slow_agents_the_log_drives_away(womd_path, 
   (probabilities summing to 1) and their probability-weighted travel."""
   import json
   from experiments import diagnose
+  from pcdiff_jax.data import realism
   out = tmp_path / "starters.json"
   diagnose.main(["--checkpoint", shipped.checkpoint_dir(), "--scenarios", womd_path, "--num-scenes", "1",
                  "--out", str(out), "starters"])
   rows = json.loads(out.read_text())["rows"]
   assert rows, "the real record has a slow starter (a car that pulls away from standstill)"
   for row in rows:
-    assert abs(row["speed"]) < diagnose.STARTER_SPEED and row["log_travel"] > diagnose.STARTER_TRAVEL
+    assert abs(row["speed"]) < realism.STARTER_SPEED and row["log_travel"] > realism.STARTER_TRAVEL
     travel, probs = np.array(row["proposals"]).T
     assert len(probs) == 6 and probs.sum() == pytest.approx(1.0, abs=1e-4) and np.all(np.diff(probs) <= 0)
     assert row["expected_travel"] == pytest.approx(float(np.sum(travel * probs)), rel=1e-5)
