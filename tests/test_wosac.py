@@ -321,6 +321,26 @@ def test_log_replay_copies_the_logged_future(womd_path):
     wosac.make_actor(wosac.WosacConfig(eval=wosac.evaluation.EvalConfig(method="log")))
 
 
+def test_log_replay_imputes_the_steps_the_log_leaves_invalid():
+  """A gap between valid steps is interpolated (yaw the short way round through
+  +-pi), the steps after the last valid one coast at its velocity, and an agent
+  whose log is complete is copied unchanged: a held box would stand in the lane."""
+  poses = np.zeros((2, 7, 4))
+  poses[..., 0] = np.arange(7.0)
+  poses[..., 1] = 2.0 * np.arange(7.0)
+  poses[..., 3] = [3.0, 3.1, -3.1, -3.0, 0.2, 0.2, 0.2]
+  valid = np.array([[1, 0, 1, 1, 0, 0, 0], [1] * 7], bool)
+  corrupted = poses.copy()
+  corrupted[0, 1] = corrupted[0, 4:] = 99.0                     # what an invalid step holds
+  out = wosac.impute_log_gaps(corrupted, valid)
+  np.testing.assert_allclose(out[0, :, :2], poses[0, :, :2], atol=1e-5)   # straight line, constant speed
+  assert abs(abs(out[0, 1, 3]) - 3.1) < 0.2 and abs(out[0, 1, 3]) > 3.0   # through pi, not through 0
+  np.testing.assert_allclose(out[0, 4:, 3], -3.0, atol=1e-6)               # yaw held after the log ends
+  np.testing.assert_array_equal(out[1], poses[1].astype(np.float32))
+  with pytest.raises(ValueError, match="current step"):
+    wosac.impute_log_gaps(poses, np.array([[0, 1, 1, 1, 1, 1, 1], [1] * 7], bool))
+
+
 @pytest.mark.skipif(not os.path.exists(os.path.join(os.path.dirname(__file__), "..", ".wosac-venv", "bin", "python")),
                     reason="Waymo's evaluator is not installed: run `make wosac-env`")
 def test_the_official_evaluator_scores_log_replay_on_the_real_record(womd_path, tmp_path, capsys):
