@@ -58,10 +58,12 @@ SIMPL_AR_ARGS ?= --lane-inputs --rounds 1 --scenes 150 --first-scene 6000 --enco
 	--encoder-learning-rate 5e-4 --mix 0.3
 LANE_ENCODER_ARGS ?= --rounds 2 --scenes 300 --first-scene 5200 --steps 1000
 V10_ARGS ?= --rounds 2 --scenes 150 --steps 800
+V11_ARGS ?= --rounds 3 --scenes 150 --steps 800
 # The shipped model's recipe from scratch (checkpoints/*/MODEL_CARD.md): 10k scenes, both stages,
 # on-policy fine-tuning rounds, lane-input rounds (v6), four more rounds (v7), the SIMPL-AR baseline's own
 # encoder (lane inputs + rounds on its own closed loop), ours re-trained on that encoder (v8), two
-# rounds on 600 other scenes (v10), export. Each command resumes where it stopped when re-run.
+# rounds on 600 other scenes (v10), the proposal head refit on queued traffic and v8's denoiser
+# re-trained on it (v11), export. Each command resumes where it stopped when re-run.
 train: install
 	$(PY) -m experiments.make_data --out data/synth10k --num-train 10000 --num-val 200 --seed 0 --shard-size 500
 	$(PY) -m experiments.train --stage encoder --config cpu --data 'data/synth10k/train-*' --workdir $(TRAIN_DIR) --steps 1800
@@ -79,7 +81,12 @@ train: install
 	$(PY) -m experiments.make_data --out data/synth600 --num-train 600 --num-val 0 --seed 0
 	$(PY) -m experiments.finetune --from $(TRAIN_DIR)-v8 --data 'data/synth600/train-*' --workdir $(TRAIN_DIR)-v10 \
 	  --cache-dir $(TRAIN_DIR)/cache600 $(V10_ARGS)
-	$(PY) -m experiments.export --workdir $(TRAIN_DIR)-v10 --out $(TRAIN_DIR)-model
+	$(PY) -m experiments.make_data --out data/synthq --num-train 1200 --num-val 200 --seed 0 --warmup-seconds 30
+	$(PY) -m experiments.refit_head --from $(TRAIN_DIR)-v10 --data 'data/synthq/train-*' 'data/synth600/train-*' \
+	  --steps 8000 --workdir $(TRAIN_DIR)-v11-head
+	$(PY) -m experiments.finetune --from $(TRAIN_DIR)-v8 --encoder-from $(TRAIN_DIR)-v11-head \
+	  --data 'data/synthq/train-*' 'data/synth600/train-*' --workdir $(TRAIN_DIR)-v11 --cache-dir $(TRAIN_DIR)/cacheq $(V11_ARGS)
+	$(PY) -m experiments.export --workdir $(TRAIN_DIR)-v11 --out $(TRAIN_DIR)-model --simpl-ar-from $(TRAIN_DIR)-v10
 
 # Re-executes notebooks/quickstart.ipynb in place on the shipped model (commit the outputs).
 notebook: install

@@ -138,7 +138,7 @@ def bench_encoder(path: str, presets: list[str], repeats: int) -> list[dict]:
 
 def _config_of(preset: str):
   """The Config of a preset name, or the one a model folder (e.g. the shipped
-  checkpoints/pcdiff-cpu-v10) was trained with: its architecture, inputs and
+  checkpoints/pcdiff-cpu-v11) was trained with: its architecture, inputs and
   sizes, so the timings are those of that model (weights stay untrained:
   they do not change the cost)."""
   if os.path.isdir(preset):
@@ -506,7 +506,7 @@ def main(argv=None) -> int:
                  help="config presets for the encoder benchmark (none: skip it)")
   p.add_argument("--policy-preset", default="cpu",
                  help="config preset of the policy benchmark, or a model folder whose config to time "
-                      "(e.g. checkpoints/pcdiff-cpu-v10: the shipped model's inputs and sizes)")
+                      "(e.g. checkpoints/pcdiff-cpu-v11: the shipped model's inputs and sizes)")
   p.add_argument("--agents", type=int, nargs="+", default=[8, 16, 32, 65, 128],
                  help="padded agent counts (SDC included) for the policy scaling")
   p.add_argument("--ddim-steps", type=int, nargs="+", default=[1, 5, 10, 25])

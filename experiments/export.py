@@ -19,9 +19,11 @@ def main(argv=None) -> int:
                               formatter_class=argparse.RawDescriptionHelpFormatter)
   p.add_argument("--workdir", required=True, help="training workdir with encoder/ and diffusion/")
   p.add_argument("--out", required=True, type=_args.output_dir, help="new folder for the exported model")
+  p.add_argument("--simpl-ar-from", default=None, metavar="FOLDER",
+                 help="keep the SIMPL-AR baseline's encoder of this model folder (its simpl_ar/ or encoder/)")
   args = p.parse_args(argv)
   try:
-    steps = shipped.export(args.workdir, args.out)
+    steps = shipped.export(args.workdir, args.out, simpl_ar_from=args.simpl_ar_from)
   except (FileNotFoundError, FileExistsError, ValueError) as err:
     print(f"error: {err}", file=sys.stderr)
     return 2

@@ -1,7 +1,7 @@
 """Waymo Open Sim Agents Challenge: write a submission, or check one.
 
   python -m experiments.wosac --scenarios 'validation/*.tfrecord*' --method pcdiff \
-      --checkpoint checkpoints/pcdiff-cpu-v10 --out runs/wosac/sub.binproto --account-name you@example.com
+      --checkpoint checkpoints/pcdiff-cpu-v11 --out runs/wosac/sub.binproto --account-name you@example.com
   python -m experiments.wosac ... --shard 3/150          # writes sub.binproto-00003-of-00150 (files 3, 153, ...)
   python -m experiments.wosac --check 'runs/wosac/sub.binproto*' --scenarios 'validation/*.tfrecord*'
   python -m experiments.wosac --score runs/wosac/sub.binproto --scenarios 'validation/*.tfrecord*' --workers 2
@@ -116,7 +116,7 @@ def parse_args(argv=None) -> argparse.Namespace:
   if args.workers < 1:
     p.error("--workers must be >= 1")
   if args.check is None and args.score is None and args.method in evaluation.LEARNED and not args.checkpoint:
-    p.error(f"--method {args.method} needs --checkpoint (e.g. checkpoints/pcdiff-cpu-v10)")
+    p.error(f"--method {args.method} needs --checkpoint (e.g. checkpoints/pcdiff-cpu-v11)")
   for name in ("max_agents", "num_rollouts", "rollouts_per_call", "max_objects"):
     if getattr(args, name) is not None and getattr(args, name) < 1:
       p.error(f"--{name.replace('_', '-')} must be >= 1")

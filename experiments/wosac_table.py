@@ -1,7 +1,7 @@
 """The WOSAC table: export and score several methods on the same scenes.
 
   python -m experiments.wosac_table --scenarios ../shared/data/womd_real/val.scenario.tfrecord \
-      --methods log cv idm-lane simpl-ar pcdiff pcdiff-guided --checkpoint checkpoints/pcdiff-cpu-v10 \
+      --methods log cv idm-lane simpl-ar pcdiff pcdiff-guided --checkpoint checkpoints/pcdiff-cpu-v11 \
       --out runs/wosac/real_val
 
 For each method: `python -m experiments.wosac --method M --out OUT/M.binproto`

@@ -15,7 +15,7 @@ import os
 import shutil
 from typing import Optional
 
-DEFAULT_NAME = "pcdiff-cpu-v10"
+DEFAULT_NAME = "pcdiff-cpu-v11"
 _STAGES = ("encoder", "diffusion")
 _OPTIONAL_STAGES = ("simpl_ar",)   # encoder_stage.SIMPL_AR_DIR: copied when the workdir has it
 STAGES = ("encoder", "diffusion", "simpl-ar")
@@ -66,21 +66,28 @@ def read_config(path: str, stage: str = "diffusion"):
     ckpt.close()
 
 
-def export(workdir: str, out: str) -> dict[str, int]:
+def export(workdir: str, out: str, simpl_ar_from: Optional[str] = None) -> dict[str, int]:
   """Copies the latest checkpoint of each stage of a training WORKDIR into OUT
   (same layout) with parameters, frozen extras and config only, and the
-  SIMPL-AR encoder (simpl_ar/) when the workdir has one. Returns the step of
+  SIMPL-AR encoder (simpl_ar/) when the workdir has one. `simpl_ar_from`: a
+  model folder whose SIMPL-AR encoder OUT's baseline keeps instead (when
+  WORKDIR's encoder was refit for ours only, as v11's). Returns the step of
   each stage. Refuses to overwrite an existing OUT."""
-  from pcdiff_jax.training import trainer
+  from pcdiff_jax.training import encoder_stage, trainer
   if os.path.exists(out):
     raise FileExistsError(f"{out} exists; remove it or choose another --out")
+  sources = {stage: os.path.join(workdir, stage) for stage in _STAGES}
+  sources.update({s: os.path.join(workdir, s) for s in _OPTIONAL_STAGES if os.path.isdir(os.path.join(workdir, s))})
+  if simpl_ar_from is not None:
+    if not os.path.isdir(os.path.join(simpl_ar_from, encoder_stage.STAGE_DIR)):
+      raise FileNotFoundError(f"--simpl-ar-from {simpl_ar_from}: not a model folder (no encoder/)")
+    sources[encoder_stage.SIMPL_AR_DIR] = os.path.join(simpl_ar_from, encoder_stage.simpl_ar_dir(simpl_ar_from))
   steps = {}
   tmp = out.rstrip("/") + ".tmp"
   shutil.rmtree(tmp, ignore_errors=True)
   try:
-    optional = [s for s in _OPTIONAL_STAGES if os.path.isdir(os.path.join(workdir, s))]
-    for stage in _STAGES + tuple(optional):
-      src = trainer.Checkpointer(os.path.join(workdir, stage), read_only=True)
+    for stage, source in sources.items():
+      src = trainer.Checkpointer(source, read_only=True)
       try:
         step, config, raw = src.latest_step(), src.read_config(), src.restore_raw()
       finally:

@@ -197,7 +197,7 @@ def test_make_train_passes_only_options_its_clis_accept(tmp_path):
   commands = [shlex.split(line) for line in text.replace("\\\n", " ").splitlines()
               if line.startswith("python -m experiments.")]
   assert {c[2] for c in commands} >= {"experiments.make_data", "experiments.train", "experiments.finetune",
-                                      "experiments.export"}
+                                      "experiments.refit_head", "experiments.export"}
   for command in commands:
     cli = importlib.import_module(command[2])
     if hasattr(cli, "parse_args"):
@@ -240,3 +240,12 @@ def test_a_shipped_model_is_read_only_to_every_command(tmp_path, capsys):
     assert e.value.code == 2
     assert "read-only" in capsys.readouterr().err
   assert sorted(p.name for p in shipped.rglob("*")) == before
+
+
+def test_export_names_a_simpl_ar_folder_that_is_not_a_model(tmp_path, capsys):
+  from experiments import export
+  from pcdiff_jax import shipped
+  out = tmp_path / "model"
+  assert export.main(["--workdir", shipped.checkpoint_dir(), "--out", str(out),
+                      "--simpl-ar-from", str(tmp_path / "nothing")]) == 2
+  assert "--simpl-ar-from" in capsys.readouterr().err and not out.exists()

@@ -46,19 +46,18 @@ def test_shipped_model_has_a_card_and_drives_the_real_record(model, real_state):
 
 
 def test_shipped_simpl_ar_baseline_has_a_lane_aware_encoder(model, real_state):
-  """The SIMPL-AR baseline's encoder (`finetune --policy simpl-ar --lane-inputs`;
-  also the one our policy conditions on, so the folder's encoder/ serves
-  both): it loads with one call, has the lane-relative inputs, and its
-  most likely proposal on the real record is within a few metres of where each
-  logged agent is 1 s later."""
+  """The SIMPL-AR baseline's encoder (`finetune --policy simpl-ar --lane-inputs`,
+  kept in the folder's simpl_ar/ because ours conditions on a head refit for
+  it): it loads with one call, has the lane-relative inputs and ours'
+  architecture, and its most likely proposal on the real record is within a
+  few metres of where each logged agent is 1 s later."""
   from pcdiff_jax.model import encoder, features
+  from pcdiff_jax.training import encoder_stage
   models, cfg = model
   params, sa_cfg = pcdiff_jax.pretrained(stage="simpl-ar")
   assert sa_cfg.encoder.lane_inputs and cfg.encoder == sa_cfg.encoder
   assert "in_lane" in params["params"]
-  same = jax.tree_util.tree_map(lambda a, b: bool(np.array_equal(np.asarray(a), np.asarray(b))),
-                                params, models.encoder)
-  assert all(jax.tree_util.tree_leaves(same))                  # ours conditions on this encoder
+  assert encoder_stage.simpl_ar_dir(shipped.checkpoint_dir()) == encoder_stage.SIMPL_AR_DIR
   start = env.reset(real_state)
   feats = jax.jit(lambda st: features.scene_features(st, sa_cfg.features))(start)
   out = jax.jit(encoder.apply, static_argnums=2)(params, feats, sa_cfg.encoder)

@@ -183,6 +183,11 @@ def test_finetune_simpl_ar_trains_its_own_encoder_only(tiny_trained, womd_path, 
   assert ours_cfg.encoder.lane_inputs and same(ours.encoder, baseline)
   assert not same(ours.denoiser, models.denoiser)
   assert same(pcdiff_jax.pretrained(path=swapped, stage="encoder")[0], baseline)
+  # export --simpl-ar-from: the baseline keeps another folder's encoder (v11 keeps v10's).
+  kept = str(tmp_path / "kept")
+  assert set(shipped.export(swapped, kept, simpl_ar_from=source)) == {"encoder", "diffusion", "simpl_ar"}
+  assert same(pcdiff_jax.pretrained(path=kept, stage="simpl-ar")[0], models.encoder)
+  assert same(pcdiff_jax.pretrained(path=kept)[0].encoder, baseline)
   bad = tmp_path / "bad.npz"
   bad.write_text("not an archive")
   assert finetune.main(swap[:swap.index("--workdir") + 1] + [str(tmp_path / "sa3")]
