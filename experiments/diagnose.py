@@ -43,7 +43,10 @@ starters      the evaluated agents (WOSAC's: the SDC and tracks_to_predict)
 first-action  the first action [accel, yaw rate] of the plans the policy
               makes at the rollout start, against the log's, for moving
               vehicles (> 2 m/s): a mean yaw rate far from the log's is a
-              bias that 10 Hz replanning integrates into drift.
+              bias that 10 Hz replanning integrates into drift; and by
+              starting speed, each plan's speed change over its first second
+              (also the same denoiser started from N(0, I) instead of the
+              proposal prior: the prior centre's share of a braking plan).
 """
 from __future__ import annotations
 
@@ -268,13 +271,19 @@ def drift(args, models, cfg, batch, num) -> dict:
   return rows
 
 
+SPEED_BINS = (2.0, 6.0, 10.0, 14.0, 18.0, np.inf)   # m/s: first-action's starting-speed bins
+
+
 def first_action(args, models, cfg, batch, num) -> dict:
-  """First planned action statistics over the batch's moving vehicles."""
+  """First planned action statistics over the batch's moving vehicles; and, by starting speed,
+  each plan's mean speed change over its first second (`sample_standard_init`: the same
+  denoiser started from N(0, I), which tells the prior centre's share of a braking plan)."""
   def one(state, rng):
     state = env.reset(state)
     feats = features_lib.scene_features(state, cfg.features)
     cond = planner.condition(models.encoder, models.stats, jax.tree_util.tree_map(lambda a: a[None], feats), cfg)
     y0 = planner.sample(models.denoiser, cond, cfg, rng, args.ddim_steps, 0.0, prior_init=args.prior)
+    y0_standard = planner.sample(models.denoiser, cond, cfg, rng, args.ddim_steps, 0.0, prior_init=False)
     decode = lambda y: dynamics.clip_action(latent.decode(y, models.stats), cfg.kinematics)
     log, log_valid = _log_actions(state, cfg.encoder.horizon, cfg)
     log, log_valid = log[feats.agent_index], log_valid[feats.agent_index]
@@ -283,12 +292,16 @@ def first_action(args, models, cfg, batch, num) -> dict:
     proposals = latent.actions_from_positions(out.trajectories, speed[:, None], cfg.kinematics)
     top1 = jnp.take_along_axis(proposals, jnp.argmax(out.probs, -1)[:, None, None, None], 1)[:, 0]
     plans = dict(log=log, log_latent=decode(latent.encode(log, models.stats)), top1=top1,
-                 prior_centre=decode(cond.mu[0]), sample=decode(y0[0]))
+                 prior_centre=decode(cond.mu[0]), sample=decode(y0[0]),
+                 sample_standard_init=decode(y0_standard[0]))
     moving = (feats.agent_valid & (speed > 2.0) & jnp.all(log_valid, -1)
               & (feats.agent_types == ObjectType.VEHICLE))
-    return {k: v[:, 0] for k, v in plans.items()}, moving
+    second = int(round(1.0 / cfg.kinematics.dt))
+    speed_change = {k: jnp.sum(v[:, :second, 0], -1) * cfg.kinematics.dt for k, v in plans.items()}
+    return {k: v[:, 0] for k, v in plans.items()}, speed_change, moving, speed
 
-  firsts, moving = jax.jit(jax.vmap(one))(batch, jax.random.split(jax.random.PRNGKey(args.seed), num))
+  firsts, changes, moving, speed = jax.jit(jax.vmap(one))(
+      batch, jax.random.split(jax.random.PRNGKey(args.seed), num))
   moving = np.asarray(moving)
   rows = {}
   for name, a in firsts.items():
@@ -298,6 +311,18 @@ def first_action(args, models, cfg, batch, num) -> dict:
     r = rows[name]
     print(f"| {name} | {r['yaw_rate_mean']:+.4f} | {r['yaw_rate_abs']:.4f} | {r['accel_mean']:+.3f} | "
           f"{r['agents']} |", flush=True)
+  speed = np.asarray(speed)[moving]
+  bins = list(zip(SPEED_BINS[:-1], SPEED_BINS[1:]))
+  names = [f"{lo:.0f}-{hi:.0f}" if np.isfinite(hi) else f">= {lo:.0f}" for lo, hi in bins]
+  print("\n| speed change over 1 s (m/s), by starting speed (m/s) | " + " | ".join(names) + " |")
+  print("|" + "---|" * (len(names) + 1))
+  for name, c in changes.items():
+    c = np.asarray(c)[moving]
+    by_speed = {n: _mean_or_nan(c, (speed >= lo) & (speed < hi)) for n, (lo, hi) in zip(names, bins)}
+    rows[name]["speed_change_1s"] = by_speed
+    print(f"| {name} | " + " | ".join(f"{v:+.2f}" for v in by_speed.values()) + " |", flush=True)
+  rows["agents_by_speed"] = {n: int(((speed >= lo) & (speed < hi)).sum()) for n, (lo, hi) in zip(names, bins)}
+  print("| agents | " + " | ".join(str(v) for v in rows["agents_by_speed"].values()) + " |")
   return rows
 
 

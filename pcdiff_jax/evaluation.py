@@ -51,8 +51,8 @@ LEARNED = ("pcdiff", "pcdiff-noprior", "simpl-ar")
 class EvalConfig:
   """method: a baseline of METHODS or a learned policy of LEARNED (which needs
   `checkpoint`, the training workdir). policy: the diffusion policies'
-  settings (`policy.PolicyConfig`; its prior_init and guidance are set from
-  `method` and `guidance`). ego: the SDC's fixed policy, "log" (replay) or
+  settings (`policy.PolicyConfig`; its guidance is set from `guidance`, and
+  `pcdiff-noprior` forces prior_init off). ego: the SDC's fixed policy, "log" (replay) or
   "idm". guidance: test-time guidance of the learned diffusion policies
   (`model.guidance`). score_adversary: also score the ego against the most
   threatening agent (the pursuer adversarial guidance would pick) when the
@@ -135,7 +135,8 @@ def _method_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
     return simpl_ar.simpl_ar(run_config(model_cfg, cfg), ar), enc
   use_prior = cfg.method == "pcdiff"
   models, model_cfg = diffusion_stage.load(cfg.checkpoint, use_prior=use_prior)
-  pcfg = dataclasses.replace(cfg.policy, prior_init=use_prior, guidance=cfg.guidance)
+  # pcdiff-noprior's model has no proposal prior; pcdiff's may still start from N(0, I).
+  pcfg = dataclasses.replace(cfg.policy, prior_init=use_prior and cfg.policy.prior_init, guidance=cfg.guidance)
   return policy.actor(run_config(model_cfg, cfg), pcfg), models
 
 

@@ -267,7 +267,15 @@ def test_demo_pipeline_runs_end_to_end(tiny_trained, tmp_path):
   assert set(parked) == {"top1 proposal", "cold", "warm from top1 @30"}
   with open(tmp_path / "first.json") as f:
     rows = json.load(f)["rows"]
-  assert set(rows) == {"log", "log_latent", "top1", "prior_centre", "sample"}
+  assert set(rows) == {"log", "log_latent", "top1", "prior_centre", "sample", "sample_standard_init",
+                       "agents_by_speed"}
+  assert sum(rows["agents_by_speed"].values()) == rows["log"]["agents"]   # the bins cover every mover
+  assert set(rows["sample"]["speed_change_1s"]) == set(rows["agents_by_speed"])
+  # prior_init=false starts a prior model from N(0, I) (pcdiff-noprior forces it off).
+  from pcdiff_jax import evaluation, policy
+  noprior = evaluation.EvalConfig(method="pcdiff", checkpoint=model, policy=policy.PolicyConfig(prior_init=False))
+  assert evaluation.make_actor(noprior)[0].name == "pcdiff-noprior"
+  assert evaluation.make_actor(dataclasses.replace(noprior, policy=policy.PolicyConfig()))[0].name == "pcdiff"
   with open(tmp_path / "replay.json") as f:
     replay = json.load(f)["rows"]
   assert replay["log"]["min_ade"] < 0.5                 # the log's own actions reproduce the log
