@@ -277,7 +277,9 @@ SPEED_BINS = (2.0, 6.0, 10.0, 14.0, 18.0, np.inf)   # m/s: first-action's starti
 def first_action(args, models, cfg, batch, num) -> dict:
   """First planned action statistics over the batch's moving vehicles; and, by starting speed,
   each plan's mean speed change over its first second (`sample_standard_init`: the same
-  denoiser started from N(0, I), which tells the prior centre's share of a braking plan)."""
+  denoiser started from N(0, I), which tells the prior centre's share of a braking plan;
+  `warm_from_log_W`: one warm replan from the log's own future noised to step W, which tells
+  whether a re-draw keeps the speed of the plan it replaces)."""
   def one(state, rng):
     state = env.reset(state)
     feats = features_lib.scene_features(state, cfg.features)
@@ -291,9 +293,14 @@ def first_action(args, models, cfg, batch, num) -> dict:
     speed = planner.agent_speed(feats)
     proposals = latent.actions_from_positions(out.trajectories, speed[:, None], cfg.kinematics)
     top1 = jnp.take_along_axis(proposals, jnp.argmax(out.probs, -1)[:, None, None, None], 1)[:, 0]
-    plans = dict(log=log, log_latent=decode(latent.encode(log, models.stats)), top1=top1,
+    log_latent = latent.encode(log, models.stats)
+    plans = dict(log=log, log_latent=decode(log_latent), top1=top1,
                  prior_centre=decode(cond.mu[0]), sample=decode(y0[0]),
                  sample_standard_init=decode(y0_standard[0]))
+    centre = jnp.where(jnp.all(log_valid, -1)[:, None], log_latent, cond.mu[0])[None]
+    for step in args.warm_steps:   # a warm replan whose previous plan was the log's own future
+      y = planner.sample(models.denoiser, cond, cfg, rng, 1, 0.0, centre=centre, start_step=step)
+      plans[f"warm_from_log_{step}"] = decode(y[0])
     moving = (feats.agent_valid & (speed > 2.0) & jnp.all(log_valid, -1)
               & (feats.agent_types == ObjectType.VEHICLE))
     second = int(round(1.0 / cfg.kinematics.dt))
@@ -451,6 +458,8 @@ def main(argv=None) -> None:
   f = sub.add_parser("first-action", help="first planned action against the log's")
   f.add_argument("--ddim-steps", type=int, default=5)
   f.add_argument("--no-prior", dest="prior", action="store_false")
+  f.add_argument("--warm-steps", default=(60, 90), type=_diffusion_steps,
+                 help="comma-separated diffusion steps (0-99) of warm replans from the log's plan")
   sub.add_parser("starters", help="the proposals of evaluated agents that start slowly and pull away in the log")
   k = sub.add_parser("parked", help="open-loop plans of the log's parked vehicles")
   k.add_argument("--samples", type=int, default=16)

@@ -278,6 +278,8 @@ class Simulator:
     self.cfg = cfg
     self.learned = None
     self._by_cap: dict[int, _LearnedRuns] = {}
+    self._programs: set = set()    # (closed loop, padded objects) pairs already compiled
+    self.compiled_last = False      # whether the last `simulate` compiled a program
     if cfg.eval.method == LOG_REPLAY:
       cfg.validate()
       self.actor, self.params, self.run = None, None, None
@@ -330,6 +332,7 @@ class Simulator:
   def simulate(self, state, scenario_id: str) -> ScenarioResult:
     """One loaded (unbatched) scenario -> its rollouts."""
     cfg = self.cfg
+    self.compiled_last = False
     if cfg.eval.method == LOG_REPLAY:
       return log_replay(state, cfg.num_rollouts)
     if cfg.hold_lights:
@@ -348,6 +351,9 @@ class Simulator:
     run, params = self.run, self.params
     if self.learned is not None:
       run, params, _ = self.learned_run(state)
+    program = (id(run), np.shape(state.log_trajectory.x))
+    self.compiled_last = program not in self._programs
+    self._programs.add(program)
     parts = []
     for c in range(calls):
       final = run(scene, keys[c * per_call:(c + 1) * per_call], params)
@@ -403,8 +409,10 @@ def export(scenarios, out: str, cfg: WosacConfig, metadata: submission.Metadata,
   """Simulates every scenario of `scenarios` (or the shard's files) and
   writes the submission file; returns a summary (path, counts, mean and
   median seconds per scenario with the first, compiling one left out: a
-  later scene in a new object bucket still compiles its own program). An empty
-  `metadata.num_model_parameters` is filled with the method's parameter count."""
+  later scene in a new object bucket still compiles its own program; and
+  `steady_seconds_per_scenario`, the mean over the scenes that compiled
+  nothing, the per-scene cost at WOMD scale, where each program compiles once).
+  An empty `metadata.num_model_parameters` is filled with the method's parameter count."""
   files = select_files(scenarios, shard)
   path = submission.shard_path(out, *(shard or (None, None)))
   simulator = Simulator(cfg)
@@ -412,7 +420,7 @@ def export(scenarios, out: str, cfg: WosacConfig, metadata: submission.Metadata,
     metadata = dataclasses.replace(metadata, num_model_parameters=submission.format_num_parameters(
         num_parameters(simulator.params)))
   from tqdm.auto import tqdm
-  seconds, lost, agents, fallback = [], 0, 0, 0
+  seconds, compiled, lost, agents, fallback = [], [], 0, 0, 0
   cap = cfg.eval.metrics.max_reactive_agents + 1   # the learned agents and the SDC (method or IDM ego)
   items = womd.iterate(files, with_meta=True, history_only=cfg.eval.method != LOG_REPLAY, max_num_objects=cfg.max_objects,
                        max_scenarios=max_scenarios, to_jax=False)
@@ -423,6 +431,7 @@ def export(scenarios, out: str, cfg: WosacConfig, metadata: submission.Metadata,
       result = simulator.simulate(state, meta.scenario_id)
       writer.add(submission.scenario_rollouts(meta.scenario_id, result.object_ids, result.trajectories))
       seconds.append(time.perf_counter() - t0)
+      compiled.append(simulator.compiled_last)
       lost += result.lost
       agents += len(result.object_ids)
       if cfg.eval.method in evaluation.LEARNED:
@@ -441,10 +450,12 @@ def export(scenarios, out: str, cfg: WosacConfig, metadata: submission.Metadata,
   if lost:
     log.warning("%d sim-agent steps were invalid in the simulation and were held at the last valid pose", lost)
   timed = seconds[1:] or seconds
+  steady = [t for t, c in zip(seconds, compiled) if not c]
   return {"path": path, "num_scenarios": writer.count, "sim_agents": agents, "fallback_agents": fallback,
           "lost_steps": lost, "num_rollouts": cfg.num_rollouts,
           "seconds_per_scenario": float(np.mean(timed)), "median_seconds_per_scenario": float(np.median(timed)),
-          "first_scenario_seconds": seconds[0],
+          "first_scenario_seconds": seconds[0], "compiling_scenarios": int(sum(compiled)),
+          "steady_seconds_per_scenario": float(np.mean(steady)) if steady else None,
           "metadata": dataclasses.asdict(metadata)}
 
 

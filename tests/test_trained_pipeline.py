@@ -245,7 +245,7 @@ def test_demo_pipeline_runs_end_to_end(tiny_trained, tmp_path):
   from experiments import diagnose
   val = os.path.join(out, "data", "val-00000-of-00001.tfrecord")
   common = ["--checkpoint", model, "--scenarios", val, "--num-scenes", "1"]
-  diagnose.main(common + ["--out", str(tmp_path / "first.json"), "first-action"])
+  diagnose.main(common + ["--out", str(tmp_path / "first.json"), "first-action", "--warm-steps", "0,90"])
   diagnose.main(common + ["--out", str(tmp_path / "replay.json"), "replay", "--plans", "log,top1-latent"])
   diagnose.main(common + ["--out", str(tmp_path / "parked.json"), "parked", "--samples", "2", "--warm-steps", "30"])
   diagnose.main(common + ["--out", str(tmp_path / "drift.json"), "drift", "--method", "cv", "--solo"])
@@ -268,7 +268,9 @@ def test_demo_pipeline_runs_end_to_end(tiny_trained, tmp_path):
   with open(tmp_path / "first.json") as f:
     rows = json.load(f)["rows"]
   assert set(rows) == {"log", "log_latent", "top1", "prior_centre", "sample", "sample_standard_init",
-                       "agents_by_speed"}
+                       "warm_from_log_0", "warm_from_log_90", "agents_by_speed"}
+  # Noised to step 0 the log's plan comes back as it went in: the warm row reads the log's latent.
+  assert rows["warm_from_log_0"]["accel_mean"] == pytest.approx(rows["log_latent"]["accel_mean"], abs=0.05)
   assert sum(rows["agents_by_speed"].values()) == rows["log"]["agents"]   # the bins cover every mover
   assert set(rows["sample"]["speed_change_1s"]) == set(rows["agents_by_speed"])
   # prior_init=false starts a prior model from N(0, I) (pcdiff-noprior forces it off).

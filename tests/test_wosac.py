@@ -504,3 +504,19 @@ def test_a_learned_method_plans_each_scene_in_the_slots_it_needs(tiny_models, mo
     runs = sim._runs_at(chosen)
     assert chosen == expect_cap and (run is runs.run) == expect_fallback and (run is runs.run_alone) != expect_fallback
     assert params is (runs.params if expect_fallback else runs.params_alone)
+
+
+def test_the_simulator_tells_the_scenes_that_compiled_a_program():
+  """The export's steady per-scene figure leaves out the scenes that compiled:
+  the first of each (closed loop, object bucket) pair; log replay compiles nothing."""
+  from conftest import make_scene
+  state = make_scene(num_steps=91)
+  ev = wosac.evaluation.EvalConfig(method="cv", num_steps=80, init_steps=11)
+  sim = wosac.Simulator(wosac.WosacConfig(eval=ev, num_rollouts=2))
+  sim.simulate(state, "a")
+  assert sim.compiled_last
+  sim.simulate(state, "b")
+  assert not sim.compiled_last
+  log = wosac.Simulator(wosac.WosacConfig(eval=wosac.evaluation.EvalConfig(method="log")))
+  log.simulate(state, "a")
+  assert not log.compiled_last
