@@ -5,6 +5,7 @@
   python -m experiments.wosac ... --shard 3/150          # writes sub.binproto-00003-of-00150 (files 3, 153, ...)
   python -m experiments.wosac --check 'runs/wosac/sub.binproto*' --scenarios 'validation/*.tfrecord*'
   python -m experiments.wosac --score runs/wosac/sub.binproto --scenarios 'validation/*.tfrecord*' --workers 2
+  python -m experiments.wosac --ceiling --scenarios 'validation/*.tfrecord*' --score-out runs/wosac/val
 
 --scenarios takes WOMD's scenario/ files (Scenario protos) or its tf_example/
 files. Every sim agent (every object valid at step 10, the SDC included) is
@@ -16,7 +17,9 @@ a bad submission; add --strict for the metadata the server also requires.
 wosac-env`) on the scenarios' full logs and writes PREFIX.wosac.json and
 PREFIX.wosac.md (--score-out, default: the submission's path without
 .binproto); PREFIX.wosac.jsonl gets each scene as it is scored, so a stopped
-run resumes there. --method log copies the logged future: a reference to score, never
+run resumes there. --ceiling writes PREFIX.ceiling.json and .md: the most any
+submission can score on the scenarios (a --score table shows it next to the
+submission's). --method log copies the logged future: a reference to score, never
 a valid submission (it reads the future).
 """
 from __future__ import annotations
@@ -59,9 +62,11 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="check these submission file(s) (globs allowed) instead of writing one")
   p.add_argument("--score", nargs="+", metavar="SUBMISSION",
                  help="score these submission file(s) with Waymo's evaluator (needs `make wosac-env`)")
+  p.add_argument("--ceiling", action="store_true",
+                 help="write the most any submission can score on --scenarios (needs `make wosac-env`)")
   p.add_argument("--score-out", default=None, metavar="PREFIX",
                  help="--score: write PREFIX.wosac.json and PREFIX.wosac.md (default: the first submission's "
-                      "path without .binproto)")
+                      "path without .binproto); --ceiling: PREFIX.ceiling.json and .md (default: runs/wosac/ceiling)")
   p.add_argument("--workers", type=int, default=max(1, min(2, os.cpu_count() or 1)),
                  help="--score: evaluator processes, each scoring every N-th scenario")
   p.add_argument("--strict", action="store_true",
@@ -109,13 +114,14 @@ def parse_args(argv=None) -> argparse.Namespace:
   m.add_argument("--num-model-parameters", type=_num_parameters, default=None,
                  help="e.g. 409K (default: counted from the method's parameters)")
   args = p.parse_args(argv)
-  if args.check is not None and args.score is not None:
-    p.error("give --check or --score, not both")
-  if args.check is None and args.score is None and args.out is None:
+  if (args.check is not None) + (args.score is not None) + args.ceiling > 1:
+    p.error("give one of --check, --score and --ceiling")
+  if args.check is None and args.score is None and not args.ceiling and args.out is None:
     p.error("give --out SUBMISSION to write one, --check SUBMISSION to check one, or --score SUBMISSION to score one")
   if args.workers < 1:
     p.error("--workers must be >= 1")
-  if args.check is None and args.score is None and args.method in evaluation.LEARNED and not args.checkpoint:
+  if (args.check is None and args.score is None and not args.ceiling and args.method in evaluation.LEARNED
+      and not args.checkpoint):
     p.error(f"--method {args.method} needs --checkpoint (e.g. checkpoints/pcdiff-cpu-v11)")
   for name in ("max_agents", "num_rollouts", "rollouts_per_call", "max_objects"):
     if getattr(args, name) is not None and getattr(args, name) < 1:
@@ -188,6 +194,27 @@ def _score(args) -> int:
   return 0 if agg["num_scenarios"] else 2
 
 
+def _ceiling(args) -> int:
+  from pcdiff_jax import wosac_scoring
+  prefix = args.score_out or os.path.join("runs", "wosac", "ceiling")
+  try:
+    result = wosac_scoring.ceiling(args.scenarios, workers=args.workers, progress=not args.no_progress)
+  except wosac_scoring.EvaluatorMissing as err:
+    print(f"error: {err}", file=sys.stderr)
+    return 2
+  for sid, reason in result["failed"].items():
+    print(f"warning: scenario {sid} has no ceiling, skipped: {reason.splitlines()[0]}", file=sys.stderr)
+  os.makedirs(os.path.dirname(os.path.abspath(prefix)), exist_ok=True)
+  with open(f"{prefix}.ceiling.json", "w") as f:
+    json.dump(result, f, indent=1, sort_keys=True)
+  with open(f"{prefix}.ceiling.md", "w") as f:
+    f.write(wosac_scoring.ceiling_table(result))
+  top = result["aggregate"]
+  print(json.dumps({k: round(v, 4) for k, v in (top or {"num_scenarios": 0}).items()}))
+  print(f"wrote {prefix}.ceiling.json and {prefix}.ceiling.md")
+  return 0 if top else 2
+
+
 def _interrupt(signum, frame):
   raise KeyboardInterrupt
 
@@ -200,6 +227,8 @@ def main(argv=None) -> int:
       return _check(args)
     if args.score is not None:
       return _score(args)
+    if args.ceiling:
+      return _ceiling(args)
     guidance = GuidanceConfig(mode=args.guidance)
     pcfg = args.policy_config
     ev = evaluation.EvalConfig(method=args.method, checkpoint=args.checkpoint, policy=pcfg, seed=args.seed,

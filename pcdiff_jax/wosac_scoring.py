@@ -142,14 +142,14 @@ def read_journal(path: Optional[str], files: Sequence[str]) -> dict:
 
 
 def _spawn(python: str, submissions: list[str], scenarios: list[str], index: int, count: int,
-           threads: int, skip: Optional[str] = None) -> subprocess.Popen:
+           threads: int, skip: Optional[str] = None, flags: Sequence[str] = ()) -> subprocess.Popen:
   env = dict(os.environ, TF_CPP_MIN_LOG_LEVEL="2", TF_NUM_INTRAOP_THREADS=str(threads),
              OMP_NUM_THREADS=str(threads), PYTHONNOUSERSITE="1")
   env.pop("PYTHONPATH", None)   # the worker must see only the evaluator's packages
   if os.path.exists(TCMALLOC):   # ~3x faster scoring, same numbers
     env["LD_PRELOAD"] = ":".join(p for p in (env.get("LD_PRELOAD"), TCMALLOC) if p)
-  cmd = [python, WORKER, "--submission", *submissions, "--scenarios", *scenarios,
-         "--index", str(index), "--count", str(count)] + (["--skip", skip] if skip else [])
+  cmd = [python, WORKER, *(["--submission", *submissions] if submissions else []), "--scenarios", *scenarios,
+         "--index", str(index), "--count", str(count), *flags] + (["--skip", skip] if skip else [])
   return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=REPO)
 
 
@@ -174,70 +174,117 @@ def score(submissions: Sequence[str], scenarios, workers: int = 1, progress: boo
   log_file = open(journal, "a") if journal else None
   if log_file and _cut_short(journal):
     log_file.write("\n")              # end the line a stop cut short
-  lines: "queue.Queue" = queue.Queue()
-  with tempfile.TemporaryDirectory(prefix="wosac-score-") as tmp:
-    inputs = scenario_files(scenarios, tmp)
-    skip = os.path.join(tmp, "skip.txt")
-    with open(skip, "w") as f:
-      f.write("\n".join(sorted(done)))
-    threads = max(1, (os.cpu_count() or 1) // workers)
-    procs = [_spawn(python, [os.path.abspath(f) for f in files], [os.path.abspath(f) for f in inputs], k,
-                    workers, threads, skip) for k in range(workers)]
-    errors = [[] for _ in procs]
-
-    def pump(k, proc):
-      for line in proc.stdout:
-        lines.put((k, line))
-      errors[k] = proc.stderr.read().splitlines()[-20:]
-      lines.put((k, None))
-
-    for k, proc in enumerate(procs):
-      threading.Thread(target=pump, args=(k, proc), daemon=True).start()
-    from tqdm.auto import tqdm
-    bar = tqdm(total=len(where), initial=len(done), desc="wosac score", unit="scenario", disable=not progress)
-    scored = {sid: {k: item[k] for k in ("metrics", "buckets", "seconds", "record")} for sid, item in done.items()}
-    failed, missing, seen, open_workers = {}, [], set(done), len(procs)
-    while open_workers:
-      k, line = lines.get()
-      if line is None:
-        open_workers -= 1
-        continue
-      try:
-        item = json.loads(line)
-      except json.JSONDecodeError:
-        continue
-      if item.get("done"):
-        continue
-      sid = item["scenario_id"]
-      if sid in done:
-        continue
-      seen.add(sid)
-      if log_file and not item.get("missing"):
-        log_file.write(json.dumps(item) + "\n")
-        log_file.flush()
-      if item.get("missing"):
-        missing.append(sid)
-        continue
-      if "error" in item:
-        failed[sid] = f"{item['record']}: {item['error']}"
-        bar.write(f"scenario {sid} could not be scored, skipped: {failed[sid]}", file=sys.stderr)
-      else:
-        scored[sid] = {k: item[k] for k in ("metrics", "buckets", "seconds", "record")}
-        bar.set_postfix(metametric=f"{np.mean([s['buckets']['realism_meta_metric'] for s in scored.values()]):.3f}")
-      bar.update(1)
+  scored = {sid: _kept(item) for sid, item in done.items()}
+  failed, missing, seen = {}, [], set(done)
+  from tqdm.auto import tqdm
+  bar = tqdm(total=len(where), initial=len(done), desc="wosac score", unit="scenario", disable=not progress)
+  try:
+    with tempfile.TemporaryDirectory(prefix="wosac-score-") as tmp:
+      inputs = scenario_files(scenarios, tmp)
+      skip = os.path.join(tmp, "skip.txt")
+      with open(skip, "w") as f:
+        f.write("\n".join(sorted(done)))
+      kept = lambda: (f"; the {len(scored)} scenes scored are kept in {journal}: the same command resumes there"
+                      if journal else "")
+      for item in _worker_lines(python, [os.path.abspath(f) for f in files], inputs, workers, skip=skip, kept=kept):
+        sid = item["scenario_id"]
+        if sid in done:
+          continue
+        seen.add(sid)
+        if log_file and not item.get("missing"):
+          log_file.write(json.dumps(item) + "\n")
+          log_file.flush()
+        if item.get("missing"):
+          missing.append(sid)
+          continue
+        if "error" in item:
+          failed[sid] = f"{item['record']}: {item['error']}"
+          bar.write(f"scenario {sid} could not be scored, skipped: {failed[sid]}", file=sys.stderr)
+        else:
+          scored[sid] = _kept(item)
+          bar.set_postfix(metametric=f"{np.mean([s['buckets']['realism_meta_metric'] for s in scored.values()]):.3f}")
+        bar.update(1)
+  finally:
     bar.close()
     if log_file:
       log_file.close()
-    for k, proc in enumerate(procs):
-      if proc.wait() != 0:
-        killed = " (killed: out of memory? try fewer --workers)" if proc.returncode == -9 else ""
-        kept = (f"; the {len(scored)} scenes scored are kept in {journal}: the same command resumes there"
-                if journal else "")
-        raise RuntimeError(f"evaluator worker {k} failed (exit {proc.returncode}){killed}{kept}:\n"
-                           + "\n".join(errors[k]))
   unknown = sorted(set(where) - seen)
   return {"scenarios": scored, "failed": failed, "missing": sorted(missing), "unknown": unknown,
           "submissions": files, "aggregate": aggregate(scored)}
+
+
+def _kept(item: dict) -> dict:
+  """What a result keeps of a worker's scored line (the ceiling where the worker gave one)."""
+  return {k: item[k] for k in ("metrics", "buckets", "seconds", "record", "ceiling") if k in item}
+
+
+def _worker_lines(python: str, submissions: list[str], inputs: list[str], workers: int,
+                  skip: Optional[str] = None, flags: Sequence[str] = (), kept=lambda: ""):
+  """Runs `workers` evaluator processes over `inputs` and yields each scene's
+  JSON line as it comes; a worker that fails is a RuntimeError (`kept()` adds
+  what was saved) once every line is in."""
+  lines: "queue.Queue" = queue.Queue()
+  threads = max(1, (os.cpu_count() or 1) // workers)
+  procs = [_spawn(python, submissions, [os.path.abspath(f) for f in inputs], k, workers, threads, skip, flags)
+           for k in range(workers)]
+  errors = [[] for _ in procs]
+
+  def pump(k, proc):
+    for line in proc.stdout:
+      lines.put((k, line))
+    errors[k] = proc.stderr.read().splitlines()[-20:]
+    lines.put((k, None))
+
+  for k, proc in enumerate(procs):
+    threading.Thread(target=pump, args=(k, proc), daemon=True).start()
+  open_workers = len(procs)
+  while open_workers:
+    k, line = lines.get()
+    if line is None:
+      open_workers -= 1
+      continue
+    try:
+      item = json.loads(line)
+    except json.JSONDecodeError:
+      continue
+    if not item.get("done"):
+      yield item
+  for k, proc in enumerate(procs):
+    if proc.wait() != 0:
+      killed = " (killed: out of memory? try fewer --workers)" if proc.returncode == -9 else ""
+      raise RuntimeError(f"evaluator worker {k} failed (exit {proc.returncode}){killed}{kept()}:\n"
+                         + "\n".join(errors[k]))
+
+
+def ceiling(scenarios, workers: int = 1, progress: bool = True, venv: Optional[str] = None) -> dict:
+  """The most any submission can score on each scene of `scenarios`, from the
+  logs alone (`wosac_worker.ceiling_likelihoods`; seconds per scene):
+  {"scenarios": {id: {"ceiling", "record"}}, "failed": {id: reason},
+  "aggregate": the mean ceiling}. Raises EvaluatorMissing, or ValueError
+  naming a bad input file."""
+  python = evaluator_python(venv)
+  out, failed = {}, {}
+  from tqdm.auto import tqdm
+  with tempfile.TemporaryDirectory(prefix="wosac-ceiling-") as tmp:
+    inputs = scenario_files(scenarios, tmp)
+    bar = tqdm(desc="wosac ceiling", unit="scenario", disable=not progress)
+    for item in _worker_lines(python, [], inputs, max(1, int(workers)), flags=["--ceiling"]):
+      if "error" in item:
+        failed[item["scenario_id"]] = f"{item['record']}: {item['error']}"
+      else:
+        out[item["scenario_id"]] = {"ceiling": item["ceiling"], "record": item["record"]}
+      bar.update(1)
+    bar.close()
+  return {"scenarios": out, "failed": failed, "aggregate": aggregate_ceiling(out)}
+
+
+def aggregate_ceiling(scored: dict) -> Optional[dict]:
+  """The mean ceiling over the scenes that have one (None when none has), with their count."""
+  rows = [s["ceiling"] for s in scored.values() if "ceiling" in s]
+  if not rows:
+    return None
+  keys = sorted(set.intersection(*(set(r) for r in rows)))
+  return {"num_scenarios": len(rows), **{k: float(np.mean([r[k] for r in rows])) for k in keys}}
 
 
 def aggregate(scored: dict) -> dict:
@@ -249,7 +296,32 @@ def aggregate(scored: dict) -> dict:
   for part in ("metrics", "buckets"):
     keys = sorted(set.intersection(*(set(s[part]) for s in scored.values())))
     out[part] = {k: float(np.mean([s[part][k] for s in scored.values()])) for k in keys}
+  ceiling_of = aggregate_ceiling(scored)
+  if ceiling_of:
+    out["ceiling"] = ceiling_of
   return out
+
+
+# The ceiling's columns: (key in a ceiling, key in a result's buckets, header).
+CEILING = (("metametric", "realism_meta_metric", "metametric"), ("kinematic_metrics", "kinematic_metrics", "kinematic"),
+           ("interactive_metrics", "interactive_metrics", "interactive"),
+           ("map_based_metrics", "map_based_metrics", "map-based"))
+
+
+def ceiling_markdown(result: dict) -> list[str]:
+  """Lines comparing a scored result's buckets with the ceiling of the same
+  scenes (the most any submission can score there); none without a ceiling."""
+  top = result["aggregate"].get("ceiling")
+  if not top:
+    return []
+  scenes = {sid: s for sid, s in result["scenarios"].items() if "ceiling" in s}
+  mine = {key: float(np.mean([s["buckets"][key] for s in scenes.values()])) for _, key, _ in CEILING}
+  return ["", f"Against the ceiling (the most any submission can score on these {top['num_scenarios']} "
+          "scene(s): each likelihood at the log's own empirical distribution; docs/WOSAC.md, \"The ceiling\"):", "",
+          "| | " + " | ".join(h for *_, h in CEILING) + " |", "|---" * (len(CEILING) + 1) + "|",
+          "| this submission | " + " | ".join(f"{mine[key]:.4f}" for _, key, _ in CEILING) + " |",
+          "| ceiling | " + " | ".join(f"{top[c]:.4f}" for c, *_ in CEILING) + " |",
+          "| below the ceiling by | " + " | ".join(f"{top[c] - mine[key]:.4f}" for c, key, _ in CEILING) + " |"]
 
 
 def _value(row: dict, key: str) -> str:
@@ -266,6 +338,7 @@ def markdown(result: dict, title: str = "WOSAC (Waymo's evaluator, 2025 config)"
   lines += ["| metric | mean |", "|---|---|"]
   lines += [f"| {header} | {_value(agg, key)} |" for key, header in HEADLINE]
   lines += [f"| {key} | {_value(agg, key)} |" for key in LIKELIHOODS if key in agg.get("metrics", {})]
+  lines += ceiling_markdown(result)
   lines += ["", "| scenario | " + " | ".join(h for _, h in HEADLINE) + " |",
             "|---" * (len(HEADLINE) + 1) + "|"]
   for sid in sorted(result["scenarios"]):
@@ -294,4 +367,26 @@ def compare(results: dict[str, dict]) -> str:
   for label, result in results.items():
     agg = result["aggregate"]
     lines.append(f"| {label} | {agg['num_scenarios']} | " + " | ".join(_value(agg, k) for k, _ in HEADLINE) + " |")
+  top = next((r["aggregate"]["ceiling"] for r in results.values() if r["aggregate"].get("ceiling")), None)
+  if top:   # the same scenes' logs give every method the same ceiling
+    lines.append(f"| ceiling (no submission scores above) | {top['num_scenarios']} | "
+                 + " | ".join(f"{top[c]:.4f}" for c, *_ in CEILING) + " |" + " |" * (len(HEADLINE) - len(CEILING)))
+  return "\n".join(lines) + "\n"
+
+
+def ceiling_table(result: dict) -> str:
+  """Markdown of `ceiling(...)`: the mean ceiling and one row per scene."""
+  top = result["aggregate"]
+  head = ["metametric", "kinematic_metrics", "interactive_metrics", "map_based_metrics"]
+  lines = ["## WOSAC ceiling (the most any submission can score; Waymo's evaluator, 2025 config)", "",
+           f"{top['num_scenarios'] if top else 0} scenario(s)"
+           + (f", {len(result['failed'])} failed" if result["failed"] else "") + ".", "",
+           "| scenario | " + " | ".join(head) + " |", "|---" * (len(head) + 1) + "|"]
+  if top:
+    lines.append("| **mean** | " + " | ".join(f"{top[k]:.4f}" for k in head) + " |")
+  for sid in sorted(result["scenarios"]):
+    row = result["scenarios"][sid]["ceiling"]
+    lines.append(f"| {sid} | " + " | ".join(f"{row[k]:.4f}" for k in head) + " |")
+  for sid, reason in sorted(result["failed"].items()):
+    lines.append(f"| {sid} | failed: {reason.splitlines()[0][:200]} |" + " |" * (len(head) - 1))
   return "\n".join(lines) + "\n"

@@ -21,6 +21,10 @@ the share of the log's steps whose bin no rollout visits ("unvisited": each
 such step costs log(0.1 / (rollouts x steps))), and per evaluated agent its valid and unvisited
 steps of each (which agents the rollouts never reproduce): {"scenario_id", "record",
 "kinematic": {..., "agents": [{"object_id", "steps", "unvisited"}]}, "seconds"}.
+
+Every scored line also holds "ceiling": the most any submission can score on
+that scene (`ceiling_likelihoods`); --ceiling computes only that, from the
+logs alone (no --submission; seconds per scene).
 """
 import argparse
 import json
@@ -51,6 +55,75 @@ def load_config(metrics):
 
 
 KINEMATIC = ("linear_speed", "linear_acceleration", "angular_speed", "angular_acceleration")
+
+
+def empirical_log_likelihood(bins, valid) -> float:
+  """The largest mean log-likelihood any histogram estimate can give the log's
+  own binned values: `bins` (A, T) int, each valid log step's bin; `valid` (A,
+  T) bool, the steps the evaluator averages over. WOSAC pools each agent's
+  rollouts over time (`independent_timesteps`) and averages log p_a(bin) over
+  every valid (agent, step), so by Gibbs' inequality no distribution p_a beats
+  the agent's own empirical bin frequencies q_a: the bound is the mean of
+  log q_a(bin), each agent's negative entropy weighted by its valid steps.
+  numpy only; NaN when no step is valid."""
+  import numpy as np
+  bins, valid = np.asarray(bins), np.asarray(valid, bool)
+  total, count = 0.0, 0
+  for row, keep in zip(bins, valid):
+    if keep.any():
+      _, counts = np.unique(row[keep], return_counts=True)
+      total += float(np.sum(counts * np.log(counts / keep.sum())))
+      count += int(keep.sum())
+  return total / count if count else float("nan")
+
+
+# The metametric's features (Waymo's `metrics._METRIC_FIELD_NAMES_BY_BUCKET`, 2025 config).
+BUCKETS = {"kinematic": ("linear_speed", "linear_acceleration", "angular_speed", "angular_acceleration"),
+           "interactive": ("distance_to_nearest_object", "collision_indication", "time_to_collision"),
+           "map_based": ("distance_to_road_edge", "offroad_indication", "traffic_light_violation")}
+BERNOULLI = ("collision_indication", "offroad_indication", "traffic_light_violation")
+
+
+def ceiling_likelihoods(config, log_features, num_rollouts: int = 32) -> dict:
+  """The most each likelihood, bucket and the metametric can be on this scene
+  for any submission of `num_rollouts` rollouts (the evaluator's features of the
+  log, `log_features`): a time series feature at most its log's own empirical
+  bin frequencies (`empirical_log_likelihood`, with the very masks the
+  evaluator averages over), an indicator at most (R + a) / (R + 2a), all R
+  rollouts agreeing with the log (a: the pseudocount). The metametric is
+  linear in the likelihoods, so its bound is their weighted sum. Log replay
+  comes near it (docs/WOSAC.md, "The ceiling")."""
+  import numpy as np
+  import tensorflow as tf
+  import tensorflow_probability as tfp
+  from waymo_open_dataset.protos import scenario_pb2
+  from waymo_open_dataset.wdl_limited.sim_agents_metrics import trajectory_features
+  valid = log_features.valid[0]
+  speed_valid, accel_valid = trajectory_features.compute_kinematic_validity(valid)
+  is_vehicle = tf.equal(log_features.object_type, scenario_pb2.Track.ObjectType.TYPE_VEHICLE)[0]
+  vehicle = tf.logical_and(valid, is_vehicle[:, tf.newaxis])
+  masks = {"linear_speed": speed_valid, "angular_speed": speed_valid, "linear_acceleration": accel_valid,
+           "angular_acceleration": accel_valid, "distance_to_nearest_object": valid,
+           "time_to_collision": vehicle, "distance_to_road_edge": valid}
+  out = {}
+  for name, mask in masks.items():
+    hist = getattr(config, name).histogram
+    values = getattr(log_features, name)[0]
+    edges = np.linspace(hist.min_val, hist.max_val, hist.num_bins + 1).astype(np.float32)
+    # The evaluator's own binning (`estimators.histogram_estimate`): clip, then tfp's bins.
+    flat = tf.reshape(tf.clip_by_value(values, hist.min_val, hist.max_val), (-1, 1))
+    bins = tf.argmax(tf.transpose(tfp.stats.histogram(flat, edges, axis=1)), axis=1)
+    bins = tf.reshape(bins, values.shape).numpy()
+    out[f"{name}_likelihood"] = float(np.exp(empirical_log_likelihood(bins, mask.numpy())))
+  for name in BERNOULLI:
+    a = getattr(config, name).bernoulli.additive_smoothing_pseudocount
+    out[f"{name}_likelihood"] = float((num_rollouts + a) / (num_rollouts + 2 * a))
+  weights = {name: getattr(config, name).metametric_weight for names in BUCKETS.values() for name in names}
+  out["metametric"] = float(sum(w * out[f"{name}_likelihood"] for name, w in weights.items()))
+  for bucket, names in BUCKETS.items():
+    out[f"{bucket}_metrics"] = float(sum(weights[n] * out[f"{n}_likelihood"] for n in names)
+                                     / sum(weights[n] for n in names))
+  return out
 
 
 def kinematic_likelihoods(config, scenario, scenario_rollouts) -> dict:
@@ -98,19 +171,25 @@ def kinematic_likelihoods(config, scenario, scenario_rollouts) -> dict:
 
 def main(argv=None) -> int:
   p = argparse.ArgumentParser()
-  p.add_argument("--submission", nargs="+", required=True)
+  p.add_argument("--submission", nargs="+", default=[])
   p.add_argument("--scenarios", nargs="+", required=True)
   p.add_argument("--index", type=int, default=0)
   p.add_argument("--count", type=int, default=1)
   p.add_argument("--skip", default=None, help="a file of scenario ids already scored (one per line)")
   p.add_argument("--kinematic", action="store_true", help="the kinematic likelihoods only (fast)")
+  p.add_argument("--ceiling", action="store_true", help="only the most any submission can score (no --submission)")
   args = p.parse_args(argv)
+  if not args.submission and not args.ceiling:
+    p.error("--submission is required (unless --ceiling)")
   skip = set(open(args.skip).read().split()) if args.skip else set()
 
   import tensorflow as tf
   tf.config.threading.set_inter_op_parallelism_threads(1)
   from waymo_open_dataset.protos import scenario_pb2, sim_agents_submission_pb2
-  from waymo_open_dataset.wdl_limited.sim_agents_metrics import metrics
+  from waymo_open_dataset.utils.sim_agents import converters
+  from waymo_open_dataset.utils.sim_agents import submission_specs
+  from waymo_open_dataset.wdl_limited.sim_agents_metrics import metric_features, metrics
+  challenge = submission_specs.ChallengeType.SIM_AGENTS
 
   config = load_config(metrics)
   rollouts = {}
@@ -130,17 +209,26 @@ def main(argv=None) -> int:
       if sid in skip:
         continue
       where = f"{path}#{record}"
-      if sid not in rollouts:
+      if sid not in rollouts and not args.ceiling:
         print(json.dumps({"scenario_id": sid, "record": where, "missing": True}), flush=True)
         continue
       t0 = time.perf_counter()
       try:
-        if args.kinematic:
+        if args.ceiling:
+          log_features = metric_features.compute_metric_features(
+              scenario, converters.scenario_to_joint_scene(scenario, challenge), challenge, use_log_validity=True)
+          line = {"ceiling": ceiling_likelihoods(config, log_features)}
+        elif args.kinematic:
           line = {"kinematic": kinematic_likelihoods(config, scenario, rollouts[sid])}
         else:
-          result = metrics.compute_scenario_metrics_for_bundle(config, scenario, rollouts[sid])
+          # `metrics.compute_scenario_metrics_for_bundle` in its two steps, to keep the log's features.
+          log_features, sim_features = metric_features.compute_scenario_rollouts_features(
+              scenario, rollouts[sid], challenge)
+          result = metrics.compute_scenario_metrics_for_features_bundle(
+              config, scenario.scenario_id, log_features, sim_features)
           buckets = metrics.aggregate_metrics_to_buckets(config, result)
-          line = {"metrics": _metrics_dict(result), "buckets": _metrics_dict(buckets)}
+          line = {"metrics": _metrics_dict(result), "buckets": _metrics_dict(buckets),
+                  "ceiling": ceiling_likelihoods(config, log_features, len(rollouts[sid].joint_scenes))}
         line = {"scenario_id": sid, "record": where, **line, "seconds": time.perf_counter() - t0}
       except Exception as err:  # one bad scene is reported and skipped, the others still count
         line = {"scenario_id": sid, "record": where,

@@ -290,6 +290,75 @@ def test_a_killed_worker_is_an_error_that_keeps_the_scored_scenes(womd_path, tmp
   assert set(wosac_scoring.read_journal(str(tmp_path / "sub.wosac.jsonl"), [sub])) == {"s0", "s1"}
 
 
+FAKE_CEILING_WORKER = r'''#!/bin/sh
+# A stand-in evaluator whose scored lines carry the scene's ceiling (s1's, an older journal's, none).
+ceiling=no
+for a in "$@"; do [ "$a" = "--ceiling" ] && ceiling=yes; done
+c='"ceiling": {"metametric": 0.8, "kinematic_metrics": 0.6, "interactive_metrics": 0.8, "map_based_metrics": 0.9}'
+if [ "$ceiling" = yes ]; then
+  echo "{\"scenario_id\": \"s0\", \"record\": \"f#0\", $c}"
+  echo '{"scenario_id": "bad", "record": "f#1", "error": "ValueError: boom"}'
+else
+  b='"buckets": {"realism_meta_metric": 0.5, "kinematic_metrics": 0.4, "interactive_metrics": 0.5, "map_based_metrics": 0.7}'
+  echo "{\"scenario_id\": \"s0\", \"record\": \"f#0\", \"metrics\": {}, $b, \"seconds\": 1.0, $c}"
+  echo "{\"scenario_id\": \"s1\", \"record\": \"f#1\", \"metrics\": {}, $b, \"seconds\": 1.0}"
+fi
+echo '{"done": true, "submitted": ["s0", "s1"]}'
+'''
+
+
+def test_the_ceiling_is_reported_beside_a_score_and_on_its_own(womd_path, tmp_path, monkeypatch, capsys):
+  """A scored scene's ceiling goes into the aggregate (over the scenes that
+  have one), the tables compare the submission with it on those scenes, and
+  --ceiling writes it for the scenarios alone."""
+  from experiments import wosac as cli
+  from pcdiff_jax import wosac_scoring
+  venv = _fake_evaluator(tmp_path)
+  (tmp_path / "fake-venv" / "bin" / "python").write_text(FAKE_CEILING_WORKER)
+  sub = _submission(tmp_path, ["s0", "s1"])
+  result = wosac_scoring.score([sub], womd_path, workers=1, progress=False, venv=venv)
+  top = result["aggregate"]["ceiling"]
+  assert top["num_scenarios"] == 1 and top["metametric"] == pytest.approx(0.8)
+  table = wosac_scoring.markdown(result)
+  assert "| ceiling | 0.8000 | 0.6000 | 0.8000 | 0.9000 |" in table
+  assert "| below the ceiling by | 0.3000 | 0.2000 | 0.3000 | 0.2000 |" in table
+  assert "| ceiling (no submission scores above) | 1 | 0.8000 |" in wosac_scoring.compare({"m": result})
+  monkeypatch.setenv("WOSAC_VENV", str(tmp_path / "nowhere"))
+  assert cli.main(["--ceiling", "--scenarios", womd_path, "--no-progress"]) == 2
+  assert "make wosac-env" in capsys.readouterr().err
+  monkeypatch.setenv("WOSAC_VENV", venv)
+  prefix = str(tmp_path / "out" / "val")
+  assert cli.main(["--ceiling", "--scenarios", womd_path, "--score-out", prefix, "--no-progress"]) == 0
+  err = capsys.readouterr().err
+  assert "scenario bad has no ceiling, skipped" in err and "Traceback" not in err
+  saved = json.loads(open(prefix + ".ceiling.json").read())
+  assert saved["aggregate"]["metametric"] == pytest.approx(0.8) and list(saved["failed"]) == ["bad"]
+  assert "| s0 | 0.8000 | 0.6000 | 0.8000 | 0.9000 |" in open(prefix + ".ceiling.md").read()
+  with pytest.raises(SystemExit):
+    cli.main(["--ceiling", "--score", sub, "--scenarios", womd_path])
+
+
+def test_no_histogram_beats_the_logs_own_empirical_frequencies():
+  """The ceiling of a time series feature: the mean log-likelihood of each
+  agent's binned log values under its own bin frequencies, over the valid
+  steps; any other histogram (the evaluator's: counts plus a pseudocount) gives
+  less (Gibbs' inequality)."""
+  from pcdiff_jax.wosac_worker import empirical_log_likelihood
+  bins = np.array([[0, 0, 1, 1, 7], [2, 2, 2, 3, 3]])
+  valid = np.array([[1, 1, 1, 1, 0], [1, 1, 1, 1, 1]], bool)
+  expected = (4 * np.log(0.5) + 3 * np.log(0.6) + 2 * np.log(0.4)) / 9
+  assert empirical_log_likelihood(bins, valid) == pytest.approx(expected)
+  assert np.isnan(empirical_log_likelihood(bins, np.zeros_like(valid)))
+  rng = np.random.default_rng(0)
+  for _ in range(200):
+    bins = rng.integers(0, 11, (3, 20))
+    valid = rng.random((3, 20)) < 0.8
+    counts = rng.integers(0, 40, (3, 11)) + 0.1
+    probs = counts / counts.sum(1, keepdims=True)
+    other = np.log(np.take_along_axis(probs, bins, 1))[valid].mean()
+    assert other <= empirical_log_likelihood(bins, valid) + 1e-12
+
+
 def test_score_refuses_bad_inputs(womd_path, tmp_path, monkeypatch, capsys):
   from experiments import wosac as cli
   sub = _submission(tmp_path, ["s0"])
@@ -354,6 +423,11 @@ def test_the_official_evaluator_scores_log_replay_on_the_real_record(womd_path, 
   assert scene["buckets"]["realism_meta_metric"] == pytest.approx(0.636, abs=2e-3)   # measured once
   from pcdiff_jax import wosac_scoring
   assert set(wosac_scoring.LIKELIHOODS) <= set(scene["metrics"])
+  # The ceiling: no likelihood of log replay above it; log replay's imputed boxes meet other agents.
+  top = scene["ceiling"]
+  assert top["metametric"] == pytest.approx(0.8248, abs=2e-3)   # measured once
+  for key in wosac_scoring.LIKELIHOODS:
+    assert scene["metrics"][key] <= top[key] + 1e-6, key
   # --kinematic: the same four likelihoods in a second; log replay visits every bin of its own.
   import subprocess
   env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
