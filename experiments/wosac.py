@@ -30,11 +30,15 @@ import os
 import signal
 import sys
 
-from experiments import _args
-from pcdiff_jax import evaluation, wosac
-from pcdiff_jax.config import MetricsConfig
-from pcdiff_jax.data import submission
-from pcdiff_jax.model.guidance import GuidanceConfig
+# A job of --jobs is pinned to its CPUs before JAX starts a thread, so that all of them inherit it.
+if os.environ.get("PCDIFF_JOB_CPUS") and hasattr(os, "sched_setaffinity"):
+  os.sched_setaffinity(0, {int(c) for c in os.environ["PCDIFF_JOB_CPUS"].split(",")})
+
+from experiments import _args  # noqa: E402
+from pcdiff_jax import evaluation, wosac  # noqa: E402
+from pcdiff_jax.config import MetricsConfig  # noqa: E402
+from pcdiff_jax.data import submission  # noqa: E402
+from pcdiff_jax.model.guidance import GuidanceConfig  # noqa: E402
 
 
 def _shard(text: str) -> tuple[int, int]:
@@ -96,6 +100,11 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="padded objects per scenario (default: 128, 256, ... whichever first holds the scene)")
   p.add_argument("--shard", type=_shard, default=None, metavar="INDEX/COUNT",
                  help="simulate every COUNT-th input file from INDEX; writes OUT-0000I-of-0000N")
+  p.add_argument("--jobs", type=int, default=1,
+                 help="export in N processes, each simulating every N-th scenario on its share of the CPU "
+                      "cores, merged into --out (on 2 CPU cores, 2 jobs export more scenes per second: "
+                      "docs/BENCHMARKS.md); the rollouts do not depend on N")
+  p.add_argument("--part", type=_shard, default=None, help=argparse.SUPPRESS)   # one job of --jobs
   p.add_argument("--max-scenarios", type=int, default=None, help="only the first N scenarios (a test)")
   p.add_argument("--overwrite", action="store_true", help="replace an existing submission file")
   p.add_argument("--seed", type=int, default=0)
@@ -120,6 +129,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.error("give --out SUBMISSION to write one, --check SUBMISSION to check one, or --score SUBMISSION to score one")
   if args.workers < 1:
     p.error("--workers must be >= 1")
+  if args.jobs < 1:
+    p.error("--jobs must be >= 1")
   if (args.check is None and args.score is None and not args.ceiling and args.method in evaluation.LEARNED
       and not args.checkpoint):
     p.error(f"--method {args.method} needs --checkpoint (e.g. checkpoints/pcdiff-cpu-v11)")
@@ -219,7 +230,73 @@ def _interrupt(signum, frame):
   raise KeyboardInterrupt
 
 
+# A job alone on one core runs XLA's CPU code in that one thread: two single-threaded jobs on 2
+# cores export more scenes per second than one job on both (docs/BENCHMARKS.md, "Jobs per host").
+ONE_THREAD_XLA_FLAGS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+
+
+def _job_cpus(count: int) -> list[set]:
+  """The usable CPUs split into `count` groups, one per job (a job shares a CPU when there are fewer)."""
+  cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else list(range(os.cpu_count() or 1))
+  if count >= len(cpus):
+    return [{cpus[j % len(cpus)]} for j in range(count)]
+  return [set(cpus[j::count]) for j in range(count)]
+
+
+def _export_in_jobs(args, argv: list[str]) -> int:
+  """Runs `--jobs` copies of this command, job j with `--part j/N` on its CPUs, and merges
+  their parts into --out; prints the summary of the whole (per scene: wall time over all the
+  jobs at once)."""
+  import subprocess
+  import time
+  target = submission.shard_path(args.out, *(args.shard or (None, None)))
+  groups, procs = _job_cpus(args.jobs), []
+  t0 = time.perf_counter()
+  try:
+    for j, cpus in enumerate(groups):
+      env = dict(os.environ)
+      env["PCDIFF_JOB_CPUS"] = ",".join(map(str, sorted(cpus)))
+      if len(cpus) == 1:
+        env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} {ONE_THREAD_XLA_FLAGS}".strip()
+      procs.append(subprocess.Popen(
+          [sys.executable, "-m", "experiments.wosac", *argv, "--part", f"{j}/{args.jobs}", "--no-progress"],
+          stdout=subprocess.PIPE, text=True, env=env))
+    outputs = [proc.communicate()[0] for proc in procs]
+  except KeyboardInterrupt:
+    for proc in procs:
+      proc.terminate()
+    for proc in procs:
+      proc.wait()
+    kept = [wosac.part_path(target, j, args.jobs) for j in range(args.jobs)]
+    kept = [f for f in kept + [f"{f}.partial" for f in kept] if os.path.exists(f)]
+    print(f"warning: stopped; the jobs' scenarios so far are kept in {kept or 'no file'} (not merged)",
+          file=sys.stderr)
+    return 130
+  failed = [j for j, proc in enumerate(procs) if proc.returncode != 0]
+  if failed:
+    print(f"error: job(s) {failed} of {args.jobs} failed (their messages above); the other jobs' parts are "
+          f"kept as {wosac.part_path(target, 'J', args.jobs)}, not merged into {target}", file=sys.stderr)
+    return 2
+  summaries = [json.loads(next(line for line in out.splitlines()[::-1] if line.startswith("{"))) for out in outputs]
+  count, metadata = wosac.merge_parts(target, args.jobs)
+  wall = time.perf_counter() - t0
+  steady = [s["steady_seconds_per_scenario"] for s in summaries if s.get("steady_seconds_per_scenario")]
+  summary = {"path": target, "num_scenarios": count, "jobs": args.jobs,
+             **{k: sum(s[k] for s in summaries) for k in ("sim_agents", "fallback_agents", "lost_steps")},
+             "num_rollouts": args.num_rollouts, "seconds_per_scenario": wall / max(count, 1),
+             # The jobs run at once: the per-scene cost of the whole is 1 / (sum of the jobs' rates).
+             "steady_seconds_per_scenario": 1.0 / sum(1.0 / t for t in steady) if steady else None,
+             "job_steady_seconds_per_scenario": [s.get("steady_seconds_per_scenario") for s in summaries]}
+  print(json.dumps(summary))
+  if not metadata.account_name:   # the parts' metadata (the parameter count filled in by the jobs)
+    print("note: no --account-name: fine for a local evaluation, required to upload", file=sys.stderr)
+  print(f"wrote {target}; check it with: python -m experiments.wosac --check {target} "
+        f"--scenarios {' '.join(args.scenarios)}")
+  return 0
+
+
 def main(argv=None) -> int:
+  argv = sys.argv[1:] if argv is None else list(argv)
   args = parse_args(argv)
   _args.setup_logging()
   try:
@@ -238,21 +315,24 @@ def main(argv=None) -> int:
                             rollouts_per_call=args.rollouts_per_call, max_objects=args.max_objects,
                             size_plans=not args.full_plans)
     target = submission.shard_path(args.out, *(args.shard or (None, None)))
-    if os.path.exists(target) and not args.overwrite:
+    if os.path.exists(target) and not args.overwrite and args.part is None:
       print(f"{target} exists: nothing to do (--overwrite to write it again)", file=sys.stderr)
       return 0
-    if args.num_rollouts != submission.NUM_ROLLOUTS:
+    signal.signal(signal.SIGTERM, _interrupt)   # `timeout`, a batch system: keep what is done
+    if args.jobs > 1 and args.part is None:
+      return _export_in_jobs(args, argv)
+    speaks = args.part is None or args.part[0] == 0   # of --jobs, the first job alone warns
+    if speaks and args.num_rollouts != submission.NUM_ROLLOUTS:
       print(f"warning: --num-rollouts {args.num_rollouts}: the challenge needs {submission.NUM_ROLLOUTS}; "
             "this file is for tests only", file=sys.stderr)
-    if args.method == wosac.LOG_REPLAY:
+    if speaks and args.method == wosac.LOG_REPLAY:
       print("warning: --method log copies the logged future: a reference to score (--score), NOT a valid "
             "submission", file=sys.stderr)
-    if pcfg.replan_every != 1:
+    if speaks and pcfg.replan_every != 1:
       print("warning: --replan-every > 1 is not closed loop at 10 Hz (the challenge's rule); the submission "
             "does not acknowledge it", file=sys.stderr)
-    signal.signal(signal.SIGTERM, _interrupt)   # `timeout`, a batch system: keep what is done
     summary = wosac.export(args.scenarios, args.out, cfg, _metadata(args, cfg), shard=args.shard,
-                           max_scenarios=args.max_scenarios, progress=not args.no_progress)
+                           max_scenarios=args.max_scenarios, progress=not args.no_progress, part=args.part)
   except wosac.Interrupted as err:
     print(f"warning: {err}", file=sys.stderr)
     return 130
@@ -260,7 +340,7 @@ def main(argv=None) -> int:
     print(f"error: {err}", file=sys.stderr)
     return 2
   print(json.dumps({k: v for k, v in summary.items() if k != "metadata"}))
-  if not summary["metadata"]["account_name"]:
+  if not summary["metadata"]["account_name"] and args.part is None:
     print("note: no --account-name: fine for a local evaluation, required to upload", file=sys.stderr)
   print(f"wrote {summary['path']}; check it with: python -m experiments.wosac --check {summary['path']} "
         f"--scenarios {' '.join(args.scenarios)}")

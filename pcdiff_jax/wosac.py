@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import itertools
 import logging
 import os
 import time
@@ -405,8 +406,9 @@ class Interrupted(Exception):
 
 def export(scenarios, out: str, cfg: WosacConfig, metadata: submission.Metadata,
            shard: Optional[tuple[int, int]] = None, max_scenarios: Optional[int] = None,
-           progress: bool = True) -> dict:
-  """Simulates every scenario of `scenarios` (or the shard's files) and
+           progress: bool = True, part: Optional[tuple[int, int]] = None) -> dict:
+  """Simulates every scenario of `scenarios` (or the shard's files; with part (j, n), the
+  j-th of every n of their scenarios, written to `part_path`) and
   writes the submission file; returns a summary (path, counts, mean and
   median seconds per scenario with the first, compiling one left out: a
   later scene in a new object bucket still compiles its own program; and
@@ -415,6 +417,8 @@ def export(scenarios, out: str, cfg: WosacConfig, metadata: submission.Metadata,
   An empty `metadata.num_model_parameters` is filled with the method's parameter count."""
   files = select_files(scenarios, shard)
   path = submission.shard_path(out, *(shard or (None, None)))
+  if part is not None:
+    path = part_path(path, *part)
   simulator = Simulator(cfg)
   if metadata.num_model_parameters == "":
     metadata = dataclasses.replace(metadata, num_model_parameters=submission.format_num_parameters(
@@ -424,6 +428,8 @@ def export(scenarios, out: str, cfg: WosacConfig, metadata: submission.Metadata,
   cap = cfg.eval.metrics.max_reactive_agents + 1   # the learned agents and the SDC (method or IDM ego)
   items = womd.iterate(files, with_meta=True, history_only=cfg.eval.method != LOG_REPLAY, max_num_objects=cfg.max_objects,
                        max_scenarios=max_scenarios, to_jax=False)
+  if part is not None:
+    items = itertools.islice(items, part[0], None, part[1])
   writer = submission.SubmissionWriter(path, metadata)
   try:
     for state, meta in tqdm(items, desc=f"wosac {cfg.eval.method}", unit="scenario", disable=not progress):
@@ -436,7 +442,7 @@ def export(scenarios, out: str, cfg: WosacConfig, metadata: submission.Metadata,
       agents += len(result.object_ids)
       if cfg.eval.method in evaluation.LEARNED:
         fallback += max(0, len(result.object_ids) - cap)
-    if writer.count == 0:
+    if writer.count == 0 and part is None:   # a part may be empty: more parts than scenarios
       raise ValueError(f"no scenario in {files}")
   except KeyboardInterrupt:
     if writer.count == 0:
@@ -449,14 +455,47 @@ def export(scenarios, out: str, cfg: WosacConfig, metadata: submission.Metadata,
   writer.close()
   if lost:
     log.warning("%d sim-agent steps were invalid in the simulation and were held at the last valid pose", lost)
-  timed = seconds[1:] or seconds
+  timed = seconds[1:] or seconds or [float("nan")]
   steady = [t for t, c in zip(seconds, compiled) if not c]
   return {"path": path, "num_scenarios": writer.count, "sim_agents": agents, "fallback_agents": fallback,
           "lost_steps": lost, "num_rollouts": cfg.num_rollouts,
           "seconds_per_scenario": float(np.mean(timed)), "median_seconds_per_scenario": float(np.median(timed)),
-          "first_scenario_seconds": seconds[0], "compiling_scenarios": int(sum(compiled)),
+          "first_scenario_seconds": seconds[0] if seconds else None, "compiling_scenarios": int(sum(compiled)),
           "steady_seconds_per_scenario": float(np.mean(steady)) if steady else None,
           "metadata": dataclasses.asdict(metadata)}
+
+
+def part_path(path: str, index: int, count: int) -> str:
+  """Where part `index` of `count` of the submission `path` is written (`export(part=...)`)."""
+  return f"{path}.part{index}of{count}"
+
+
+def merge_parts(path: str, count: int):
+  """Writes `path` from its `count` complete parts (part j holds scenarios j, j + count, ...),
+  in the input's scenario order, with their metadata, and removes them. Returns the number of
+  scenarios and the metadata (a SimAgentsChallengeSubmission without rollouts)."""
+  subs = [submission.read(part_path(path, j, count)) for j in range(count)]
+  parts = [list(sub.scenario_rollouts) for sub in subs]
+  head = type(subs[0])()
+  head.CopyFrom(subs[0])
+  del head.scenario_rollouts[:]
+  with submission.SubmissionWriter(path, _Fixed(head)) as writer:
+    for i in range(max(map(len, parts))):
+      for rollouts in parts:
+        if i < len(rollouts):
+          writer.add(rollouts[i])
+  for j in range(count):
+    os.remove(part_path(path, j, count))
+  return writer.count, head
+
+
+@dataclasses.dataclass(frozen=True)
+class _Fixed:
+  """Metadata already in proto form, as `SubmissionWriter` takes it."""
+  proto: Any
+
+  def to_proto(self):
+    return self.proto
 
 
 def check(paths: Sequence[str], scenarios, max_objects: Optional[int] = None, strict: bool = False,

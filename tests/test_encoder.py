@@ -211,3 +211,49 @@ def test_world_proposals_follow_a_rigid_transform_of_the_scene(feats, params):
   rot = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
   np.testing.assert_allclose(xy2, xy @ rot.T + shift, atol=1e-3)
   np.testing.assert_allclose(np.angle(np.exp(1j * (yaw2 - yaw - angle))), 0.0, atol=1e-3)
+
+
+def _sft_per_edge(params, h, e, idx, mask, layer: E.SFTLayer):
+  """The SFT layer with its key and value projected on every edge (the textbook form)."""
+  p = params["params"]
+  dense = lambda name, x: x @ p[name]["kernel"] + p[name].get("bias", 0.0)
+  def norm(name, x):
+    mu, var = jnp.mean(x, -1, keepdims=True), jnp.var(x, -1, keepdims=True)
+    return (x - mu) / jnp.sqrt(var + 1e-6) * p[name]["scale"] + p[name]["bias"]
+  head = lambda name, x: jnp.einsum("...d,dhc->...hc", x, p[name]["kernel"]) + p[name]["bias"]
+  mem = dense("mem_e", e) + dense("mem_i", h)[:, None] + E.senders(dense("mem_j", h), idx)
+  mem = jax.nn.relu(norm("mem_ln", mem))
+  q, key, val = head("query", h), head("key", mem), head("value", mem)
+  logits = jnp.einsum("nhc,nkhc->nhk", q, key) / np.sqrt(q.shape[-1])
+  weights = jax.nn.softmax(jnp.where(mask[:, None], logits, -1e9), -1)
+  att = jnp.einsum("nhk,nkhc->nhc", weights, val).reshape(h.shape[0], -1)
+  att = att @ p["out"]["kernel"].reshape(-1, h.shape[-1]) + p["out"]["bias"]
+  h = norm("ln_att", h + att)
+  h = norm("ln_ffn", h + dense("Dense_0", jax.nn.relu(dense("Dense_1", h))))   # Dense_0 is built first, outside
+  if layer.update_edges:
+    e = norm("edge_ln", e + jax.nn.relu(norm("edge_ln_in", dense("edge_upd", mem))))
+  return h, e
+
+
+@pytest.mark.parametrize("all_pairs", [False, True])
+def test_sft_layer_is_attention_with_keys_and_values_on_every_edge(all_pairs):
+  """Keys and values applied per receiver compute the per-edge layer, to float rounding, with
+  the parameters `nn.DenseGeneral` would make (checkpoints load as they are)."""
+  n, k, d = 12, 5, 16
+  keys = jax.random.split(jax.random.PRNGKey(0), 5)
+  h = jax.random.normal(keys[0], (n, d))
+  if all_pairs:
+    idx, mask = None, jnp.arange(n)[None, :].repeat(n, 0) < n - 2
+    e = jax.random.normal(keys[1], (n, n, d))
+  else:
+    idx = jax.random.randint(keys[2], (n, k), 0, n)
+    mask = jax.random.uniform(keys[3], (n, k)) > 0.3
+    e = jax.random.normal(keys[1], (n, k, d))
+  layer = E.SFTLayer(d, num_heads=4, ffn_multiplier=2, update_edges=True, dropout=0.0)
+  params = layer.init(keys[4], h, e, idx, mask, True)
+  assert params["params"]["key"]["kernel"].shape == (d, 4, d // 4)
+  assert params["params"]["value"]["bias"].shape == (4, d // 4)
+  params = jax.tree_util.tree_map(lambda a: a + 0.3 * jax.random.normal(keys[0], a.shape), params)
+  got, want = layer.apply(params, h, e, idx, mask, True), _sft_per_edge(params, h, e, idx, mask, layer)
+  for a, b in zip(got, want):
+    np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4)

@@ -2,9 +2,10 @@
 
 tests/data/policy_rollouts.npz holds short closed-loop rollouts (and one stateless `policy.step`).
 It was first recorded with the single-module policy the package replaced (commit e1ec5d4), which
-the package matched bit for bit; it was re-recorded once, when the jerk limit's reference became
+the package matched bit for bit; it was re-recorded when the jerk limit's reference became
 the policy's own executed acceleration (the log's trend over a second at the first step) and the
-kinematic speed the velocity along the heading (CHANGELOG.md). Record it with
+kinematic speed the velocity along the heading, and again when the encoder's attention applied
+its key and value projections once per receiver instead of per edge (float rounding; CHANGELOG.md). Record it with
 `PCDIFF_TEST_XLA_DEFAULTS=1 PYTHONPATH=.:tests python tests/test_policy_package.py`, and
 only for a change meant to move the numbers.
 """

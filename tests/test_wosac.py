@@ -508,6 +508,38 @@ def test_an_interrupted_export_keeps_the_scenarios_it_finished(womd_path, tmp_pa
   assert sorted(os.listdir(tmp_path)) == ["scenario.tfrecord"]
 
 
+def test_parts_merge_in_the_inputs_scenario_order(tmp_path):
+  """Part j of n holds scenarios j, j + n, ...; the merged file lists them as the input did,
+  with the parts' metadata, and an empty part (more jobs than scenarios) is allowed."""
+  path = str(tmp_path / "sub.binproto")
+  meta = submission.Metadata(account_name="me@example.com", unique_method_name="m", num_model_parameters="7")
+  traj = np.zeros((2, 1, 80, 4), np.float32)
+  for j, ids in enumerate([["s0", "s3"], ["s1"], ["s2"], []]):
+    with submission.SubmissionWriter(wosac.part_path(path, j, 4), meta) as writer:
+      for sid in ids:
+        writer.add(submission.scenario_rollouts(sid, [5], traj))
+  count, head = wosac.merge_parts(path, 4)
+  sub = submission.read(path)
+  assert count == 4 and [r.scenario_id for r in sub.scenario_rollouts] == ["s0", "s1", "s2", "s3"]
+  assert sub.account_name == head.account_name == "me@example.com" and sub.num_model_parameters == "7"
+  assert sorted(os.listdir(tmp_path)) == ["sub.binproto"]
+
+
+@pytest.mark.slow
+def test_jobs_write_the_file_one_process_writes(womd_path, tmp_path):
+  """--jobs 2: two processes, each on its share of the cores, export every other scenario and
+  the parts are merged: the same bytes as one process (cv is deterministic), nothing left over."""
+  from experiments import wosac as cli
+  state, _ = womd.load(womd_path, to_jax=False)
+  scenarios = str(tmp_path / "scenario.tfrecord")
+  womd.write(scenarios, [(state, f"scene-{i}") for i in range(3)], record_format="scenario")
+  common = ["--scenarios", scenarios, "--method", "cv", "--num-rollouts", "2", "--no-progress"]
+  assert cli.main(common + ["--out", str(tmp_path / "one.binproto")]) == 0
+  assert cli.main(common + ["--out", str(tmp_path / "two.binproto"), "--jobs", "2"]) == 0
+  assert (tmp_path / "one.binproto").read_bytes() == (tmp_path / "two.binproto").read_bytes()
+  assert sorted(os.listdir(tmp_path)) == ["one.binproto", "scenario.tfrecord", "two.binproto"]
+
+
 def test_plan_cap_is_the_first_bucket_that_holds_the_scene():
   assert [wosac.plan_cap(n, 64) for n in (0, 3, 15, 16, 31, 32, 63, 64, 200)] == [15, 15, 15, 31, 31, 63, 63, 64, 64]
   assert wosac.plan_cap(20, 24) == 24 and wosac.plan_cap(3, 8) == 8

@@ -231,8 +231,31 @@ def relative_pose(centre: Array, direction: Array, idx: Optional[Array], radius:
   return jnp.stack(jnp.broadcast_arrays(dist / radius, cos_a, sin_a, cos_h, sin_h), -1)
 
 
+class HeadProjection(nn.Module):
+  """The kernel (d, heads, c) and bias (heads, c) of a per-head projection, the parameters
+  `nn.DenseGeneral((heads, c))` would make under the same name (same tree, same init), for
+  layers that apply them to a reduced input instead of every edge."""
+  num_heads: int
+  head_dim: int
+
+  @nn.compact
+  def __call__(self, in_dim: int) -> tuple[Array, Array]:
+    shape = (self.num_heads, self.head_dim)
+    flat = lambda rng, _: nn.initializers.lecun_normal()(rng, (in_dim, math.prod(shape)))
+    kernel = self.param("kernel", lambda rng: flat(rng, None).reshape((in_dim,) + shape))
+    bias = self.param("bias", lambda rng: jnp.zeros(shape))
+    return kernel, bias
+
+
 class SFTLayer(nn.Module):
-  """One Symmetric Fusion Transformer layer over a k-neighbour edge set."""
+  """One Symmetric Fusion Transformer layer over a k-neighbour edge set.
+
+  The key and value projections are linear in the edge memory m_ij, so they are applied once
+  per receiver instead of once per edge: logits q_i . (W_k m_ij + b_k) = (W_k^T q_i) . m_ij +
+  q_i . b_k, and sum_j w_ij (W_v m_ij + b_v) = W_v (sum_j w_ij m_ij) + b_v sum_j w_ij. The
+  same function as projecting every edge (equal up to float rounding), with two of a layer's
+  four d x d matmuls per edge gone (docs/BENCHMARKS.md, "The encoder's attention").
+  """
   d_model: int
   num_heads: int
   ffn_multiplier: int
@@ -244,19 +267,22 @@ class SFTLayer(nn.Module):
                deterministic: bool):
     """h (N, d), e (N, k, d), idx (N, k) or None (all pairs), mask (N, k) -> (h, e)."""
     d, nh = self.d_model, self.num_heads
+    c = d // nh
     drop = lambda x: nn.Dropout(self.dropout)(x, deterministic=deterministic)
     # W [e_ij, h_i, h_j] as W_e e_ij + W_i h_i + W_j h_j.
     hi = nn.Dense(d, use_bias=False, name="mem_i")(h)                 # (N, d)
     hj = nn.Dense(d, use_bias=False, name="mem_j")(h)                 # (N, d)
     mem = nn.Dense(d, name="mem_e")(e) + hi[:, None] + senders(hj, idx)  # (N, k, d)
     mem = nn.relu(nn.LayerNorm(name="mem_ln")(mem))
-    q = nn.DenseGeneral((nh, d // nh), name="query")(h)               # (N, heads, c)
-    key = nn.DenseGeneral((nh, d // nh), name="key")(mem)             # (N, k, heads, c)
-    val = nn.DenseGeneral((nh, d // nh), name="value")(mem)           # (N, k, heads, c)
-    logits = jnp.einsum("nhc,nkhc->nhk", q, key) / math.sqrt(d // nh)  # (N, heads, k)
-    logits = jnp.where(mask[:, None], logits, _NEG)
+    q = nn.DenseGeneral((nh, c), name="query")(h)                     # (N, heads, c)
+    key_w, key_b = HeadProjection(nh, c, name="key")(d)               # (d, heads, c), (heads, c)
+    val_w, val_b = HeadProjection(nh, c, name="value")(d)
+    q_mem = jnp.einsum("nhc,dhc->nhd", q, key_w)                       # (N, heads, d)
+    logits = jnp.einsum("nhd,nkd->nhk", q_mem, mem) + jnp.einsum("nhc,hc->nh", q, key_b)[..., None]
+    logits = jnp.where(mask[:, None], logits / math.sqrt(c), _NEG)     # (N, heads, k)
     weights = drop(jax.nn.softmax(logits, axis=-1))
-    att = jnp.einsum("nhk,nkhc->nhc", weights, val)                   # (N, heads, c)
+    pooled = jnp.einsum("nhk,nkd->nhd", weights, mem)                  # (N, heads, d)
+    att = jnp.einsum("nhd,dhc->nhc", pooled, val_w) + jnp.sum(weights, -1)[..., None] * val_b
     att = nn.DenseGeneral(d, axis=(-2, -1), name="out")(att)          # (N, d)
     h = nn.LayerNorm(name="ln_att")(h + drop(att))
     ffn = nn.Dense(d)(nn.relu(nn.Dense(self.ffn_multiplier * d)(h)))
