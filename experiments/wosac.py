@@ -230,8 +230,8 @@ def _interrupt(signum, frame):
   raise KeyboardInterrupt
 
 
-# A job alone on one core runs XLA's CPU code in that one thread: two single-threaded jobs on 2
-# cores export more scenes per second than one job on both (docs/BENCHMARKS.md, "Jobs per host").
+# A job alone on one core runs XLA's CPU code in that one thread: two single-threaded jobs on 2 cores
+# export more scenes per second than one job on both (docs/BENCHMARKS.md, "WOSAC export: one job per core").
 ONE_THREAD_XLA_FLAGS = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
 
 

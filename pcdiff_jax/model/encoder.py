@@ -254,7 +254,8 @@ class SFTLayer(nn.Module):
   per receiver instead of once per edge: logits q_i . (W_k m_ij + b_k) = (W_k^T q_i) . m_ij +
   q_i . b_k, and sum_j w_ij (W_v m_ij + b_v) = W_v (sum_j w_ij m_ij) + b_v sum_j w_ij. The
   same function as projecting every edge (equal up to float rounding), with two of a layer's
-  four d x d matmuls per edge gone (docs/BENCHMARKS.md, "The encoder's attention").
+  four d x d matmuls per edge gone (docs/BENCHMARKS.md, "WOSAC export: one job per core and the
+  encoder's attention").
   """
   d_model: int
   num_heads: int
