@@ -241,8 +241,9 @@ class HeadProjection(nn.Module):
   @nn.compact
   def __call__(self, in_dim: int) -> tuple[Array, Array]:
     shape = (self.num_heads, self.head_dim)
-    flat = lambda rng, _: nn.initializers.lecun_normal()(rng, (in_dim, math.prod(shape)))
-    kernel = self.param("kernel", lambda rng: flat(rng, None).reshape((in_dim,) + shape))
+    # DenseGeneral initialises the flattened (in, heads * c) kernel, then reshapes it.
+    init = lambda rng: nn.initializers.lecun_normal()(rng, (in_dim, math.prod(shape))).reshape((in_dim,) + shape)
+    kernel = self.param("kernel", init)
     bias = self.param("bias", lambda rng: jnp.zeros(shape))
     return kernel, bias
 
