@@ -11,6 +11,8 @@ from pathlib import Path
 # older loop emitters compile faster than the fusion emitters but round differently in the last
 # bits, so tests/test_policy_package.py (bit for bit against a recording made with XLA's
 # defaults) runs its rollouts in a fresh interpreter with XLA_DEFAULTS_ENV set.
+# (`--xla_backend_optimization_level=0` compiles faster still, but the tiny model's training
+# then validates to NaN: not used.)
 XLA_DEFAULTS_ENV = "PCDIFF_TEST_XLA_DEFAULTS"
 # The flags before this file added any (test workers and subprocesses inherit the changed ones).
 DEFAULT_XLA_FLAGS = os.environ.setdefault("PCDIFF_TEST_DEFAULT_XLA_FLAGS", os.environ.get("XLA_FLAGS", ""))

@@ -91,9 +91,12 @@ def test_agents_whose_log_overlaps_another_box_can_be_left_out_of_training():
   state = make_scene(num_steps=91, xs=(0.0, 0.0, 60.0, -30.0), ys=(-2.0, 2.0, -2.0, -2.0))
   at10 = state.replace(sim_trajectory=state.log_trajectory, timestep=jnp.asarray(10, jnp.int32))
   idx = jnp.arange(4)
-  assert data_lib.log_overlaps_ahead(at10, idx, 80).tolist() == [True, False, True, False]
-  assert not data_lib.log_overlaps_ahead(at10, idx, 30).any()
-  example = lambda drop: data_lib.example_at(state, 10, CFG.features, 80, drop_log_overlaps=drop)
+  # Jitted: run op by op these compile every op on their own (minutes on 2 cores).
+  ahead = jax.jit(data_lib.log_overlaps_ahead, static_argnums=2)
+  assert ahead(at10, idx, 80).tolist() == [True, False, True, False]
+  assert not ahead(at10, idx, 30).any()
+  example = lambda drop: jax.jit(lambda s: data_lib.example_at(s, 10, CFG.features, 80,
+                                                               drop_log_overlaps=drop))(state)
   kept, dropped = example(False), example(True)
   trained = lambda ex: {int(o): bool(v.any()) for o, v, ok in zip(
       ex.feats.agent_index, ex.targets.future_valid, ex.feats.agent_valid) if ok}
