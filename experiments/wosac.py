@@ -73,6 +73,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                       "path without .binproto); --ceiling: PREFIX.ceiling.json and .md (default: runs/wosac/ceiling)")
   p.add_argument("--workers", type=int, default=max(1, min(2, os.cpu_count() or 1)),
                  help="--score: evaluator processes, each scoring every N-th scenario")
+  p.add_argument("--raw-headings", action="store_true",
+                 help="--score, --ceiling: score against the logs' headings as stored, even where a scene "
+                      "stores degrees (by default read in radians, as the simulator reads them)")
   p.add_argument("--strict", action="store_true",
                  help="--check: missing or wrong metadata (account, method name, required flags) is an error")
   p.add_argument("--out", type=_args.output_file, help="the submission file to write (NAME.binproto)")
@@ -185,7 +188,8 @@ def _score(args) -> int:
   prefix = args.score_out or args.score[0].split(".binproto")[0]
   try:
     result = wosac_scoring.score(args.score, args.scenarios, workers=args.workers,
-                                 progress=not args.no_progress, journal=f"{prefix}.wosac.jsonl")
+                                 progress=not args.no_progress, journal=f"{prefix}.wosac.jsonl",
+                                 raw_headings=args.raw_headings)
   except wosac_scoring.EvaluatorMissing as err:
     print(f"error: {err}", file=sys.stderr)
     return 2
@@ -209,7 +213,8 @@ def _ceiling(args) -> int:
   from pcdiff_jax import wosac_scoring
   prefix = args.score_out or os.path.join("runs", "wosac", "ceiling")
   try:
-    result = wosac_scoring.ceiling(args.scenarios, workers=args.workers, progress=not args.no_progress)
+    result = wosac_scoring.ceiling(args.scenarios, workers=args.workers, progress=not args.no_progress,
+                                   raw_headings=args.raw_headings)
   except wosac_scoring.EvaluatorMissing as err:
     print(f"error: {err}", file=sys.stderr)
     return 2

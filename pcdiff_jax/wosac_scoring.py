@@ -104,9 +104,11 @@ def scenario_files(paths, workdir: str) -> list[str]:
   return out
 
 
-def _journal_key(files: Sequence[str]) -> list:
-  """What a journal must match to be reused: each submission's name, size and mtime."""
-  return [[os.path.basename(f), os.path.getsize(f), os.stat(f).st_mtime_ns] for f in files]
+def _journal_key(files: Sequence[str], raw_headings: bool = False) -> list:
+  """What a journal must match to be reused: each submission's name, size and mtime, and how
+  the logs' headings were read."""
+  return [[os.path.basename(f), os.path.getsize(f), os.stat(f).st_mtime_ns] for f in files] + \
+      [["headings", "as stored" if raw_headings else "radians"]]
 
 
 def _cut_short(path: str) -> bool:
@@ -118,7 +120,7 @@ def _cut_short(path: str) -> bool:
     return f.read(1) != b"\n"
 
 
-def read_journal(path: Optional[str], files: Sequence[str]) -> dict:
+def read_journal(path: Optional[str], files: Sequence[str], raw_headings: bool = False) -> dict:
   """{scenario id: worker line} of the scenes a journal holds scored for
   these very submission files; {} when there is none or it belongs to other
   files (changed since, or another submission). Failed scenes are not kept:
@@ -133,7 +135,7 @@ def read_journal(path: Optional[str], files: Sequence[str]) -> dict:
       except json.JSONDecodeError:
         continue                      # a line cut short when the run stopped
       if number == 0:
-        if item.get("journal_of") != _journal_key(files):
+        if item.get("journal_of") != _journal_key(files, raw_headings):
           return {}
         continue
       if "metrics" in item:
@@ -154,23 +156,25 @@ def _spawn(python: str, submissions: list[str], scenarios: list[str], index: int
 
 
 def score(submissions: Sequence[str], scenarios, workers: int = 1, progress: bool = True,
-          venv: Optional[str] = None, journal: Optional[str] = None) -> dict:
+          venv: Optional[str] = None, journal: Optional[str] = None, raw_headings: bool = False) -> dict:
   """Scores the submission(s) on the scenarios with `workers` evaluator
   processes. Returns {"scenarios": {id: {"metrics", "buckets", "seconds",
   "record"}}, "failed": {id: reason}, "missing": [ids without rollouts],
   "unknown": [submitted ids not in the scenarios], "aggregate": ...}.
   `journal`: a JSONL file that gets each scene's result as it comes, so a
   stopped run resumes where it was (`read_journal`) and can be followed.
-  Raises EvaluatorMissing, or ValueError naming a bad input file."""
+  A log whose headings are in degrees is scored in radians, as our reader reads it
+  (`wosac_worker.headings_in_radians`; such scenes carry "headings_from_degrees"), unless
+  `raw_headings`. Raises EvaluatorMissing, or ValueError naming a bad input file."""
   python = evaluator_python(venv)
   where = read_submissions(submissions)
   files = sorted(set(where.values()))
   workers = max(1, int(workers))
-  done = read_journal(journal, files)
+  done = read_journal(journal, files, raw_headings)
   if journal and not done:
     os.makedirs(os.path.dirname(os.path.abspath(journal)), exist_ok=True)
     with open(journal, "w") as f:
-      f.write(json.dumps({"journal_of": _journal_key(files)}) + "\n")
+      f.write(json.dumps({"journal_of": _journal_key(files, raw_headings)}) + "\n")
   log_file = open(journal, "a") if journal else None
   if log_file and _cut_short(journal):
     log_file.write("\n")              # end the line a stop cut short
@@ -186,7 +190,9 @@ def score(submissions: Sequence[str], scenarios, workers: int = 1, progress: boo
         f.write("\n".join(sorted(done)))
       kept = lambda: (f"; the {len(scored)} scenes scored are kept in {journal}: the same command resumes there"
                       if journal else "")
-      for item in _worker_lines(python, [os.path.abspath(f) for f in files], inputs, workers, skip=skip, kept=kept):
+      flags = ["--raw-headings"] if raw_headings else []
+      for item in _worker_lines(python, [os.path.abspath(f) for f in files], inputs, workers, skip=skip,
+                                flags=flags, kept=kept):
         sid = item["scenario_id"]
         if sid in done:
           continue
@@ -215,7 +221,8 @@ def score(submissions: Sequence[str], scenarios, workers: int = 1, progress: boo
 
 def _kept(item: dict) -> dict:
   """What a result keeps of a worker's scored line (the ceiling where the worker gave one)."""
-  return {k: item[k] for k in ("metrics", "buckets", "seconds", "record", "ceiling") if k in item}
+  return {k: item[k] for k in ("metrics", "buckets", "seconds", "record", "ceiling", "headings_from_degrees")
+          if k in item}
 
 
 def _worker_lines(python: str, submissions: list[str], inputs: list[str], workers: int,
@@ -256,19 +263,20 @@ def _worker_lines(python: str, submissions: list[str], inputs: list[str], worker
                          + "\n".join(errors[k]))
 
 
-def ceiling(scenarios, workers: int = 1, progress: bool = True, venv: Optional[str] = None) -> dict:
+def ceiling(scenarios, workers: int = 1, progress: bool = True, venv: Optional[str] = None,
+            raw_headings: bool = False) -> dict:
   """The most any submission can score on each scene of `scenarios`, from the
   logs alone (`wosac_worker.ceiling_likelihoods`; seconds per scene):
   {"scenarios": {id: {"ceiling", "record"}}, "failed": {id: reason},
-  "aggregate": the mean ceiling}. Raises EvaluatorMissing, or ValueError
-  naming a bad input file."""
+  "aggregate": the mean ceiling}; headings as `score` reads them. Raises
+  EvaluatorMissing, or ValueError naming a bad input file."""
   python = evaluator_python(venv)
   out, failed = {}, {}
   from tqdm.auto import tqdm
   with tempfile.TemporaryDirectory(prefix="wosac-ceiling-") as tmp:
     inputs = scenario_files(scenarios, tmp)
     bar = tqdm(desc="wosac ceiling", unit="scenario", disable=not progress)
-    for item in _worker_lines(python, [], inputs, max(1, int(workers)), flags=["--ceiling"]):
+    for item in _worker_lines(python, [], inputs, max(1, int(workers)), flags=["--ceiling"] + (["--raw-headings"] if raw_headings else [])):
       if "error" in item:
         failed[item["scenario_id"]] = f"{item['record']}: {item['error']}"
       else:

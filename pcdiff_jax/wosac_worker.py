@@ -54,6 +54,23 @@ def load_config(metrics):
     return text_format.Parse(f.read(), sim_agents_metrics_pb2.SimAgentMetricsConfig())
 
 
+HEADING_TOLERANCE = 1e-3
+
+
+def headings_in_radians(scenario) -> bool:
+  """`pcdiff_jax.data.scenario_proto.normalize_headings`, repeated here because this script
+  imports only the evaluator's packages (tests/test_wosac.py checks that the two agree): a
+  Scenario whose box headings are in degrees (any beyond pi) gets them in radians, so the
+  evaluator scores against the log our reader gives the simulator. True when it changed them."""
+  import math
+  states = [s for track in scenario.tracks for s in track.states if s.valid]
+  if not any(abs(s.heading) > math.pi + HEADING_TOLERANCE for s in states):
+    return False
+  for s in states:
+    s.heading = (math.radians(s.heading) + math.pi) % (2 * math.pi) - math.pi
+  return True
+
+
 KINEMATIC = ("linear_speed", "linear_acceleration", "angular_speed", "angular_acceleration")
 
 
@@ -178,6 +195,8 @@ def main(argv=None) -> int:
   p.add_argument("--skip", default=None, help="a file of scenario ids already scored (one per line)")
   p.add_argument("--kinematic", action="store_true", help="the kinematic likelihoods only (fast)")
   p.add_argument("--ceiling", action="store_true", help="only the most any submission can score (no --submission)")
+  p.add_argument("--raw-headings", action="store_true",
+                 help="score against the headings as stored, even in degrees (headings_in_radians)")
   args = p.parse_args(argv)
   if not args.submission and not args.ceiling:
     p.error("--submission is required (unless --ceiling)")
@@ -213,6 +232,7 @@ def main(argv=None) -> int:
         print(json.dumps({"scenario_id": sid, "record": where, "missing": True}), flush=True)
         continue
       t0 = time.perf_counter()
+      converted = False if args.raw_headings else headings_in_radians(scenario)
       try:
         if args.ceiling:
           log_features = metric_features.compute_metric_features(
@@ -229,7 +249,8 @@ def main(argv=None) -> int:
           buckets = metrics.aggregate_metrics_to_buckets(config, result)
           line = {"metrics": _metrics_dict(result), "buckets": _metrics_dict(buckets),
                   "ceiling": ceiling_likelihoods(config, log_features, len(rollouts[sid].joint_scenes))}
-        line = {"scenario_id": sid, "record": where, **line, "seconds": time.perf_counter() - t0}
+        line = {"scenario_id": sid, "record": where, **line, "seconds": time.perf_counter() - t0,
+                **({"headings_from_degrees": True} if converted else {})}
       except Exception as err:  # one bad scene is reported and skipped, the others still count
         line = {"scenario_id": sid, "record": where,
                 "error": f"{type(err).__name__}: {err}".strip()[:2000],

@@ -110,8 +110,10 @@ def test_rollouts_match_the_recorded_policy(tmp_path):
       np.testing.assert_array_equal(got[key], want, err_msg=key)
     else:
       # A CPU with other vector units (e.g. avx512_bf16) rounds otherwise, and 5 closed-loop
-      # steps amplify it: 2e-4 on one of 40 actions there.
-      np.testing.assert_allclose(got[key], want, rtol=1e-3, atol=1e-3, err_msg=f"{key} (recorded on {recorded_on})")
+      # steps amplify it: 2e-4 on one of 40 actions there; guidance's gradient steps amplify it
+      # more: 4e-3 on one of 40 guided actions on an AMD EPYC against an Intel recording.
+      tol = 1e-2 if "guided" in key else 1e-3
+      np.testing.assert_allclose(got[key], want, rtol=tol, atol=tol, err_msg=f"{key} (recorded on {recorded_on})")
 
 
 if __name__ == "__main__":   # [PATH]: write the outputs there (the test's run), else record REFERENCE

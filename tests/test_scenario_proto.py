@@ -232,3 +232,50 @@ def test_more_sim_agents_than_the_first_bucket_take_the_next(tmp_path):
   assert batch.log_trajectory.x.shape == (2, 256, 91)                # a batch takes its largest scene's size
   assert np.array_equal(batch.log_trajectory.x[1, :128], small.log_trajectory.x)
   assert not batch.object_metadata.is_valid[1, 128:].any() and np.all(batch.object_metadata.ids[1, 128:] == -1)
+
+
+def test_headings_stored_in_degrees_read_in_radians(tmp_path):
+  """Some public scenes converted back from JSON store box headings in degrees; the reader
+  gives radians (the same values as the scene stored in radians, to float32), and leaves
+  a scene in radians as it is."""
+  radians = _scenario(num_steps=91)
+  turns = np.linspace(-3.1, 3.1, 91)
+  for i, track in enumerate(radians.tracks):
+    for t, s in enumerate(track.states):
+      s.heading = float(turns[(t + 30 * i) % 91])
+  degrees = pb.Scenario.FromString(radians.SerializeToString())
+  for track in degrees.tracks:
+    for s in track.states:
+      s.heading = float(np.degrees(s.heading))
+  as_radians = scenario_proto.scenario_to_example(radians)
+  as_degrees = scenario_proto.scenario_to_example(degrees)
+  for part in ("past", "current", "future"):
+    key = f"state/{part}/bbox_yaw"
+    assert np.allclose(as_degrees[key], as_radians[key], atol=1e-6), key
+  # The message itself, as the scorer's worker rewrites it, and that worker's copy of the rule.
+  from pcdiff_jax import wosac_worker
+  message, worker_copy = (pb.Scenario.FromString(degrees.SerializeToString()) for _ in range(2))
+  assert scenario_proto.normalize_headings(message) and wosac_worker.headings_in_radians(worker_copy)
+  got, worker_got, want = ([s.heading for tr in m.tracks for s in tr.states if s.valid]
+                           for m in (message, worker_copy, radians))
+  assert np.allclose(got, want, atol=1e-6) and np.array_equal(got, worker_got)
+  assert not scenario_proto.normalize_headings(message) and not wosac_worker.headings_in_radians(radians)
+
+
+@pytest.mark.skipif(not REAL_VAL.exists(), reason="../shared is absent (real WOMD val scenes)")
+def test_real_val_scenes_in_degrees_are_the_thirteen_and_read_along_the_motion():
+  """13 of the 36 real val scenes (records 3-15) store headings in degrees; read in radians,
+  their movers' boxes point along their velocity, as in the other 23."""
+  flagged = []
+  for i, raw in enumerate(tfrecord.read_records(str(REAL_VAL))):
+    scenario = scenario_proto.parse(raw)
+    if scenario_proto.headings_in_degrees(np.array([s.heading for tr in scenario.tracks for s in tr.states
+                                                    if s.valid])):
+      flagged.append(i)
+  assert flagged == list(range(3, 16))
+  for index in (3, 9):
+    state, _ = womd.load(str(REAL_VAL), index=index, to_jax=False, max_num_objects=None)
+    log = state.log_trajectory
+    moving = log.valid & (np.hypot(log.vel_x, log.vel_y) > 3)
+    off = np.abs((log.yaw - np.arctan2(log.vel_y, log.vel_x) + np.pi) % (2 * np.pi) - np.pi)[moving]
+    assert moving.sum() > 100 and np.median(off) < np.radians(3) and np.mean(off > np.pi / 2) < 0.01

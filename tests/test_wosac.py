@@ -275,6 +275,35 @@ def test_a_stopped_scoring_resumes_from_its_journal(womd_path, tmp_path):
   assert result["scenarios"]["s0"]["buckets"]["realism_meta_metric"] == 0.5
 
 
+HEADINGS_WORKER = r'''#!/bin/sh
+# A stand-in evaluator that says it read the logs' headings in radians, unless --raw-headings.
+flag=', "headings_from_degrees": true'
+for a in "$@"; do [ "$a" = "--raw-headings" ] && flag=''; done
+b='"realism_meta_metric": 0.5, "kinematic_metrics": 0.5, "interactive_metrics": 0.5, "map_based_metrics": 0.5'
+for sid in s0 s1; do
+  echo "{\"scenario_id\": \"$sid\", \"record\": \"f#0\", \"metrics\": {\"metametric\": 0.5}, \"buckets\": {$b}, \"seconds\": 1.0$flag}"
+done
+echo '{"done": true, "submitted": ["s0", "s1"]}'
+'''
+
+
+def test_logs_are_scored_with_headings_in_radians_unless_raw_headings(womd_path, tmp_path):
+  """A scene the worker read in radians says so in its result; --raw-headings reaches the worker,
+  and a journal written one way is not reused the other way."""
+  from pcdiff_jax import wosac_scoring
+  venv = _fake_evaluator(tmp_path)
+  (tmp_path / "fake-venv" / "bin" / "python").write_text(HEADINGS_WORKER)
+  sub = _submission(tmp_path, ["s0", "s1"])
+  journal = str(tmp_path / "sub.wosac.jsonl")
+  read = wosac_scoring.score([sub], womd_path, progress=False, venv=venv, journal=journal)
+  assert sorted(read["scenarios"]) == ["s0", "s1"]
+  assert all(s["headings_from_degrees"] for s in read["scenarios"].values())
+  assert wosac_scoring.read_journal(journal, [sub], raw_headings=True) == {}
+  raw = wosac_scoring.score([sub], womd_path, progress=False, venv=venv, journal=journal, raw_headings=True)
+  assert sorted(raw["scenarios"]) == ["s0", "s1"]
+  assert not any("headings_from_degrees" in s for s in raw["scenarios"].values())
+
+
 def test_a_killed_worker_is_an_error_that_keeps_the_scored_scenes(womd_path, tmp_path, monkeypatch, capsys):
   from experiments import wosac as cli
   venv = _fake_evaluator(tmp_path)

@@ -50,11 +50,12 @@ def align_headings(state: SimulatorState, min_speed: float = MOTION_HEADING_SPEE
   that direction and its opposite (a car does not move sideways), at every step up to the
   current one; the log is left as it is.
 
-  Some converted real scenes carry box headings unrelated to the motion (docs/DEVELOPING.md,
-  "Known limits"). The kinematic model moves a box along its heading and keeps only the
-  velocity's part along it (`dynamics.states_from_trajectory`), so such a car would start
-  standing and be held by the still gate; aligned, it drives on at its logged speed
-  (docs/WOSAC.md, "WOSAC on the real val scenes")."""
+  A guard against logs whose box headings are unrelated to the motion (as the shared real
+  scenes stored in degrees looked when read as radians; the reader now converts those:
+  docs/DEVELOPING.md, "Known limits"). The kinematic model moves a box along its heading and
+  keeps only the velocity's part along it (`dynamics.states_from_trajectory`), so such a car
+  would start standing and be held by the still gate; aligned, it drives on at its logged
+  speed."""
   sim = state.sim_trajectory
   motion = jnp.arctan2(sim.vel_y, sim.vel_x)
   off = jnp.abs(geometry.wrap_angle(motion - sim.yaw))
