@@ -190,9 +190,8 @@ def score(submissions: Sequence[str], scenarios, workers: int = 1, progress: boo
         f.write("\n".join(sorted(done)))
       kept = lambda: (f"; the {len(scored)} scenes scored are kept in {journal}: the same command resumes there"
                       if journal else "")
-      flags = ["--raw-headings"] if raw_headings else []
       for item in _worker_lines(python, [os.path.abspath(f) for f in files], inputs, workers, skip=skip,
-                                flags=flags, kept=kept):
+                                flags=_heading_flags(raw_headings), kept=kept):
         sid = item["scenario_id"]
         if sid in done:
           continue
@@ -217,6 +216,11 @@ def score(submissions: Sequence[str], scenarios, workers: int = 1, progress: boo
   unknown = sorted(set(where) - seen)
   return {"scenarios": scored, "failed": failed, "missing": sorted(missing), "unknown": unknown,
           "submissions": files, "aggregate": aggregate(scored)}
+
+
+def _heading_flags(raw_headings: bool) -> list[str]:
+  """The worker's flag to score against the logs' headings as stored (`headings_in_radians`)."""
+  return ["--raw-headings"] if raw_headings else []
 
 
 def _kept(item: dict) -> dict:
@@ -276,7 +280,8 @@ def ceiling(scenarios, workers: int = 1, progress: bool = True, venv: Optional[s
   with tempfile.TemporaryDirectory(prefix="wosac-ceiling-") as tmp:
     inputs = scenario_files(scenarios, tmp)
     bar = tqdm(desc="wosac ceiling", unit="scenario", disable=not progress)
-    for item in _worker_lines(python, [], inputs, max(1, int(workers)), flags=["--ceiling"] + (["--raw-headings"] if raw_headings else [])):
+    flags = ["--ceiling", *_heading_flags(raw_headings)]
+    for item in _worker_lines(python, [], inputs, max(1, int(workers)), flags=flags):
       if "error" in item:
         failed[item["scenario_id"]] = f"{item['record']}: {item['error']}"
       else:

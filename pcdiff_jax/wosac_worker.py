@@ -58,10 +58,11 @@ HEADING_TOLERANCE = 1e-3
 
 
 def headings_in_radians(scenario) -> bool:
-  """`pcdiff_jax.data.scenario_proto.normalize_headings`, repeated here because this script
-  imports only the evaluator's packages (tests/test_wosac.py checks that the two agree): a
-  Scenario whose box headings are in degrees (any beyond pi) gets them in radians, so the
-  evaluator scores against the log our reader gives the simulator. True when it changed them."""
+  """Our reader's heading rule (`pcdiff_jax.data.scenario_proto.headings_in_degrees`),
+  repeated here because this script imports only the evaluator's packages
+  (tests/test_scenario_proto.py checks that the two agree): a Scenario whose box headings are
+  in degrees (any beyond pi) gets them in radians, in place, so the evaluator scores against
+  the log our reader gives the simulator. True when it changed them."""
   import math
   states = [s for track in scenario.tracks for s in track.states if s.valid]
   if not any(abs(s.heading) > math.pi + HEADING_TOLERANCE for s in states):

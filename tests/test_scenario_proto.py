@@ -252,14 +252,18 @@ def test_headings_stored_in_degrees_read_in_radians(tmp_path):
   for part in ("past", "current", "future"):
     key = f"state/{part}/bbox_yaw"
     assert np.allclose(as_degrees[key], as_radians[key], atol=1e-6), key
-  # The message itself, as the scorer's worker rewrites it, and that worker's copy of the rule.
+  now = [tr.states[10].heading if tr.states[10].valid else -1.0 for tr in radians.tracks]
+  assert np.array_equal(as_radians["state/current/bbox_yaw"].reshape(-1), np.float32(now))
+  # The scorer's worker applies the same rule to the message (its own copy: it runs in the
+  # evaluator's venv): the headings the reader gives, and a scene in radians left as it is.
   from pcdiff_jax import wosac_worker
-  message, worker_copy = (pb.Scenario.FromString(degrees.SerializeToString()) for _ in range(2))
-  assert scenario_proto.normalize_headings(message) and wosac_worker.headings_in_radians(worker_copy)
-  got, worker_got, want = ([s.heading for tr in m.tracks for s in tr.states if s.valid]
-                           for m in (message, worker_copy, radians))
-  assert np.allclose(got, want, atol=1e-6) and np.array_equal(got, worker_got)
-  assert not scenario_proto.normalize_headings(message) and not wosac_worker.headings_in_radians(radians)
+  message = pb.Scenario.FromString(degrees.SerializeToString())
+  assert wosac_worker.headings_in_radians(message) and not wosac_worker.headings_in_radians(radians)
+  rewritten = scenario_proto.scenario_to_example(message)
+  for part in ("past", "current", "future"):
+    key = f"state/{part}/bbox_yaw"
+    assert np.allclose(rewritten[key], as_degrees[key], atol=1e-6), key
+  assert not wosac_worker.headings_in_radians(message)
 
 
 @pytest.mark.skipif(not REAL_VAL.exists(), reason="../shared is absent (real WOMD val scenes)")

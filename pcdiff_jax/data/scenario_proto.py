@@ -210,18 +210,6 @@ def radians_from_degrees(headings: np.ndarray) -> np.ndarray:
   return (np.deg2rad(headings) + np.pi) % (2 * np.pi) - np.pi
 
 
-def normalize_headings(scenario) -> bool:
-  """Rewrites, in place, the box headings of a Scenario whose headings are in degrees
-  (`headings_in_degrees`) as radians, as the reader reads them; True when it did. Used to
-  give Waymo's evaluator the same log our simulator reads (`wosac_scoring`)."""
-  states = [s for track in scenario.tracks for s in track.states if s.valid]
-  if not headings_in_degrees(np.array([s.heading for s in states], np.float64)):
-    return False
-  for s in states:
-    s.heading = float(radians_from_degrees(np.float64(s.heading)))
-  return True
-
-
 def _track_arrays(tracks, num_steps: int) -> dict[str, np.ndarray]:
   """(O, num_steps) arrays of every ObjectState field, -1 where invalid; headings in
   radians (`headings_in_degrees`)."""
