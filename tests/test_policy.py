@@ -416,6 +416,88 @@ def test_wheeled_objects_turn_only_by_moving():
     policy.actor(CFG, policy.PolicyConfig(max_curvature=-1.0))
 
 
+def test_safe_speed_stops_the_follower_at_the_minimum_gap():
+  """Gipps' safe speed: reacting for `reaction` s and braking at `brake`, the follower stops
+  FOLLOW_MIN_GAP behind a leader that brakes as hard; none where the gap is already used up."""
+  gap, lead = jnp.array([20.0, 7.0, 40.0, 0.5]), jnp.array([0.0, 10.0, 25.0, 0.0])
+  v = np.asarray(policy.safe_speed(gap, lead, 0.5, 4.0))
+  room = np.asarray(gap) - policy.FOLLOW_MIN_GAP + np.asarray(lead) ** 2 / 8.0
+  np.testing.assert_allclose((v * 0.5 + v ** 2 / 8.0)[:3], room[:3], rtol=1e-5)
+  assert v[3] == 0.0
+
+
+def _follow_scene(speeds, xs, ys, yaws=None, types=None):
+  """A make_scene state whose objects are at (xs, ys) at its current step, with headings yaws."""
+  from pcdiff_jax.sim.datatypes import ObjectType
+  scene = lambda x0: env.reset(make_scene(num_objects=len(speeds), num_steps=91, speeds=speeds, xs=x0, ys=ys))
+  elapsed = float(scene(xs).timestep) * CFG.kinematics.dt
+  state = scene(tuple(x - v * elapsed for x, v in zip(xs, speeds)))
+  cur = state.sim_trajectory
+  if yaws is not None:
+    yaw = jnp.broadcast_to(jnp.asarray(yaws, jnp.float32)[:, None], cur.yaw.shape)
+    speed = jnp.asarray(speeds, jnp.float32)[:, None]
+    cur = cur.replace(yaw=yaw, vel_x=speed * jnp.cos(yaw), vel_y=speed * jnp.sin(yaw))
+    state = state.replace(sim_trajectory=cur)
+  if types is not None:
+    state = state.replace(object_metadata=state.object_metadata.replace(
+        object_types=jnp.asarray([getattr(ObjectType, t) for t in types], jnp.int32)))
+  return state
+
+
+def test_follow_bound_brakes_behind_the_leader_on_the_planned_path():
+  """follow_bound: a car closing on a slow car in its lane gets the hardest braking; a car in the
+  next lane, a stopped car beyond where the plan and the stop take the agent, a pedestrian and
+  crossing traffic bound nothing; a stopped car across the path does; a queued car may not start
+  until its leader does; a leader off the heading line but on a turning plan's path is found."""
+  bound = jax.jit(lambda s, p: policy.follow_bound(s, p, (0.5, 4.0), 0.1))
+  still = jnp.zeros((4, 80, 2))
+  state = _follow_scene((10.0, 2.0, 10.0, 0.0), (0.0, 12.0, 40.0, 60.0), (-2.0, -2.0, 2.0, -2.0))
+  np.testing.assert_array_equal(np.asarray(bound(state, still)), [-policy.FOLLOW_MAX_BRAKE] + [np.inf] * 3)
+  # The same follower as a pedestrian: no bound.
+  walker = _follow_scene((10.0, 2.0, 10.0, 0.0), (0.0, 12.0, 40.0, 60.0), (-2.0, -2.0, 2.0, -2.0),
+                         types=("VEHICLE", "PEDESTRIAN", "VEHICLE", "VEHICLE"))
+  assert np.asarray(bound(walker, still))[0] == -policy.FOLLOW_MAX_BRAKE
+  walker = _follow_scene((10.0, 2.0, 10.0, 0.0), (0.0, 12.0, 40.0, 60.0), (-2.0, -2.0, 2.0, -2.0),
+                         types=("PEDESTRIAN", "VEHICLE", "VEHICLE", "VEHICLE"))
+  assert np.asarray(bound(walker, still))[0] == np.inf
+  # Crossing traffic 15 m ahead: moving, it is the plan's to avoid; standing, it bounds.
+  crossing = lambda v: _follow_scene((10.0, v, 0.0, 0.0), (0.0, 15.0, -50.0, -60.0), (-2.0, -2.0, 2.0, 2.0),
+                                     yaws=(0.0, np.pi / 2, 0.0, 0.0))
+  assert np.asarray(bound(crossing(8.0), still))[0] == np.inf
+  assert np.asarray(bound(crossing(0.0), still))[0] < 0.0
+  # A queue: stopped 0.8 m behind a stopped leader it stays; it may go once the leader goes.
+  queue = lambda v: _follow_scene((0.0, v, 0.0, 0.0), (0.0, 5.3, -50.0, -60.0), (-2.0, -2.0, 2.0, 2.0))
+  go = jnp.zeros((4, 80, 2)).at[:, :, 0].set(1.0)
+  assert np.asarray(bound(queue(0.0), go))[0] == 0.0
+  assert np.asarray(bound(queue(3.0), go))[0] > 1.0
+  # A turning plan: the leader 12 m along a left arc of radius 20 m, 3.6 m off the heading line.
+  arc = jnp.deg2rad(12.0 / 20.0 * 180.0 / np.pi)
+  lead_xy = (20.0 * np.sin(arc), -2.0 + 20.0 * (1.0 - np.cos(arc)))
+  turn = _follow_scene((10.0, 0.0, 0.0, 0.0), (0.0, float(lead_xy[0]), -50.0, -60.0),
+                       (-2.0, float(lead_xy[1]), 2.0, 2.0), yaws=(0.0, float(arc), 0.0, 0.0))
+  left = jnp.zeros((4, 80, 2)).at[0, :, 1].set(10.0 / 20.0)
+  assert np.asarray(bound(turn, left))[0] == -policy.FOLLOW_MAX_BRAKE
+  assert np.asarray(bound(turn, still))[0] == np.inf
+
+
+def test_follow_is_applied_after_the_jerk_limit():
+  """execute with `follow` on: the bound overrides the plan and the jerk limit (a safety bound,
+  not comfort), and off it changes nothing."""
+  state = _follow_scene((10.0, 2.0, 10.0, 0.0), (0.0, 12.0, 40.0, 60.0), (-2.0, -2.0, 2.0, -2.0))
+  plan = jnp.zeros((4, 80, 2)).at[:, :, 0].set(1.0)
+  path = jnp.zeros((4, 80, 2))
+  on = policy.PolicyConfig(follow=(0.5, 4.0))
+  now, reference = policy.execute(state, plan, path, 0, on, CFG, jnp.zeros(4))
+  np.testing.assert_allclose(np.asarray(now)[:, 0], [-policy.FOLLOW_MAX_BRAKE, 0.15, 0.15, 0.15], atol=1e-6)
+  # The jerk limit's next reference is the acceleration before the bound: the forced braking
+  # does not linger once the leader is gone.
+  np.testing.assert_allclose(np.asarray(reference), 0.15, atol=1e-6)
+  off, _ = policy.execute(state, plan, path, 0, dataclasses.replace(on, follow=(0.0, 0.0)), CFG, jnp.zeros(4))
+  np.testing.assert_allclose(np.asarray(off)[:, 0], 0.15, atol=1e-6)
+  with pytest.raises(ValueError, match="follow"):
+    policy.actor(CFG, policy.PolicyConfig(follow=(0.5, 0.0)))
+
+
 def test_policy_fields_are_set_by_name_with_their_types():
   """with_overrides (`experiments.rollout --policy FIELD=VALUE`) converts strings to each field's
   type, tuples element-wise, and names the fields when one is unknown."""

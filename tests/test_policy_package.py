@@ -33,18 +33,20 @@ NUM_STEPS = 5
 # name -> PolicyConfig: the defaults, the new gates on the executed action, and the other branches
 # of planning (track execution, consistent noise, top-1 prior centre, cold plans, guidance).
 SETTINGS = {
-    # The defaults the reference was recorded with (the still gate and the curvature bound came
-    # on by default after it; "gates" covers them).
-    "defaults": policy.PolicyConfig(still_gate=(0.0, 0.0), max_curvature=0.0),
-    "gates": policy.PolicyConfig(still_gate=(2.0, 2.0), max_curvature=0.05, select_held_still=False),
+    # The defaults the reference was recorded with (the still gate, the curvature bound and the
+    # follow bound came on by default after it; "gates" covers the first two, tests/test_policy.py
+    # the follow bound).
+    "defaults": policy.PolicyConfig(still_gate=(0.0, 0.0), max_curvature=0.0, follow=(0.0, 0.0)),
+    "gates": policy.PolicyConfig(still_gate=(2.0, 2.0), max_curvature=0.05, select_held_still=False,
+                                 follow=(0.0, 0.0)),
     # The selection scoring held agents standing still (the default after "gates" was recorded).
-    "held_still": policy.PolicyConfig(still_gate=(2.0, 2.0), max_curvature=0.05),
+    "held_still": policy.PolicyConfig(still_gate=(2.0, 2.0), max_curvature=0.05, follow=(0.0, 0.0)),
     "track": policy.PolicyConfig(execute="track", consistent_noise=True, prior_centre="top1",
                                  replan_every=2, select_samples=2, jerk_limit=(1.0, 0.0),
-                                 still_gate=(0.0, 0.0), max_curvature=0.0),
+                                 still_gate=(0.0, 0.0), max_curvature=0.0, follow=(0.0, 0.0)),
     "cold_guided": policy.PolicyConfig(warm_start=False, select_samples=1, ddim_steps=2,
                                        temporal_ensemble=(0.0, 0.0), stop_hold=False,
-                                       still_gate=(0.0, 0.0), max_curvature=0.0,
+                                       still_gate=(0.0, 0.0), max_curvature=0.0, follow=(0.0, 0.0),
                                        guidance=guidance_lib.GuidanceConfig(mode="objective")),
 }
 

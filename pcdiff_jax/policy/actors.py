@@ -30,8 +30,8 @@ class PlanState:
   noise (O, d) each object's initial DDIM noise (consistent_noise); road the
   scene's road signed-distance field for guidance, built once at `init`;
   path (O, T, 2) the last plan's positions in the world frame (execute="track"); accel (O,)
-  the acceleration executed at the last step, before the first the log's trend
-  (`execution.logged_accel`): the jerk limit's reference."""
+  the acceleration executed at the last step before the follow bound, before the first step
+  the log's trend (`execution.logged_accel`): the jerk limit's reference."""
   controlled: Array
   plan: Array
   path: Array
@@ -67,7 +67,7 @@ def step(state: SimulatorState, models: Models, cfg: Config, rng: Array,
   y0 = planning.sample(models, scene, cfg, policy, rng, adversary, road)               # (S, A, d)
   y0 = selection.select(y0, models, scene, cfg, policy, adversary, road)               # (1, A, d)
   plan, planned, path = planning.decode(y0, models, scene, state, cfg, policy)         # (O, T, 2)
-  now = execution.execute(state, plan, path, 0, policy, cfg)                           # (O, 2)
+  now, _ = execution.execute(state, plan, path, 0, policy, cfg)                        # (O, 2)
   return execution.controlled_action(state, controlled, planned, now), controlled
 
 
@@ -108,10 +108,9 @@ def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
     plan, plan_valid, path = jax.lax.cond(
         due, lambda: replan(models, state, ps, rng), lambda: (ps.plan, ps.plan_valid, ps.path))
     age = jnp.where(due, 0, ps.age)
-    now = execution.execute(state, plan, path, age, policy, cfg, ps.accel)                     # (O, 2)
+    now, reference = execution.execute(state, plan, path, age, policy, cfg, ps.accel)          # (O, 2), (O,)
     action = execution.controlled_action(state, ps.controlled, plan_valid, now)
-    executed = jnp.clip(now[:, 0], -cfg.kinematics.max_accel, cfg.kinematics.max_accel)
-    accel = jnp.where(action.valid[:, 0], executed, jnp.nan)
+    accel = jnp.where(action.valid[:, 0], reference, jnp.nan)
     new = ps.replace(plan=plan, plan_valid=plan_valid, path=path, age=age + 1, accel=accel)
     return ActorOutput(actor_state=new, action=action, is_controlled=ps.controlled)
 

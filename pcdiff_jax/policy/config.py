@@ -54,6 +54,11 @@ class PolicyConfig:
       point track_steps ahead (pure pursuit, as SIMPL-AR executes its proposals).
     jerk_limit: (rise, fall) m/s^3: the executed acceleration moves from the last executed one
       by at most rise * dt up and fall * dt down; 0 turns a side off.
+    follow: (reaction s, braking m/s^2): a vehicle or cyclist accelerates at most as much as
+      keeps it able to stop behind every leader on its planned path if both brake this hard,
+      reacting this late (Gipps' safe speed, `execution.follow_bound`); (0, 0) is off. Fewer
+      rear-end collisions on real and synthetic scenes, the other rates level
+      (docs/RESULTS.md, "Ablation: the follow bound").
     stop_hold: braking ends at standstill, so a stopped car never reverses on plan noise.
     still_gate: (seconds, metres): an agent slower than START_GATE_SPEED whose proposals,
       weighted by probability, carry it less than `metres` within `seconds` is stopped and held
@@ -83,6 +88,7 @@ class PolicyConfig:
   select_stride: int = 3
   select_neighbours: int = 16
   jerk_limit: tuple[float, float] = (1.5, 5.0)
+  follow: tuple[float, float] = (0.5, 4.0)
   stop_hold: bool = True
   max_curvature: float = 0.3
   still_gate: tuple[float, float] = (2.0, 1.0)
@@ -146,6 +152,8 @@ def validate(cfg: Config, policy: PolicyConfig) -> None:
     raise ValueError(f"select_map_weight must be >= 0, got {policy.select_map_weight}")
   if len(policy.still_gate) != 2 or not all(g >= 0 for g in policy.still_gate):
     raise ValueError(f"still_gate must be (seconds, metres) >= 0, got {policy.still_gate}")
+  if len(policy.follow) != 2 or not (all(f > 0 for f in policy.follow) or not any(policy.follow)):
+    raise ValueError(f"follow must be (reaction s, braking m/s^2), both > 0, or (0, 0) for off; got {policy.follow}")
   if policy.max_curvature < 0:
     raise ValueError(f"max_curvature must be >= 0 (1/m; 0: off), got {policy.max_curvature}")
   policy.guidance.validate()

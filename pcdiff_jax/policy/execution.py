@@ -1,9 +1,10 @@
 """Execution: from a plan to the action executed now, through the filters on it.
 
 `execute` takes the plan's current step (or pure pursuit of its path), then, as PolicyConfig
-turns them on, limits the jerk, holds braking at standstill and bounds the curvature; `ensemble_plans` blends consecutive plans before that (temporal ensembling). The plan
-itself is never changed by a filter: the next replan starts from the state the filtered action
-led to.
+turns them on, limits the jerk, keeps a wheeled agent able to stop behind the leader on its
+planned path, holds braking at standstill and bounds the curvature; `ensemble_plans` blends
+consecutive plans before that (temporal ensembling). The plan itself is never changed by a
+filter: the next replan starts from the state the filtered action led to.
 """
 from __future__ import annotations
 
@@ -18,15 +19,22 @@ from pcdiff_jax.sim import datatypes, dynamics, geometry
 from pcdiff_jax.sim.datatypes import Action, Array, ObjectType, SimulatorState
 
 STOPPED_REVERSE_SPEED = 0.1   # m/s: slower reversing is a stop (float error, log noise), not a manoeuvre
+FOLLOW_MIN_GAP = 1.0          # m: bumper gap kept to a stopped leader
+FOLLOW_MAX_BRAKE = 8.0        # m/s^2: the hardest braking the follow bound asks for
+FOLLOW_STILL_SPEED = 1.0      # m/s: a slower object is an obstacle whatever its heading
+FOLLOW_ALIGNED = 0.5          # cos 60 deg: a moving object heading within it of the path is a leader
+FOLLOW_PATH_STRIDE = 5        # plan steps per segment of the path searched for leaders
 
 
 def execute(state: SimulatorState, plan: Array, path: Array, age, policy: PolicyConfig, cfg: Config,
-            last_accel: Optional[Array] = None) -> Array:
+            last_accel: Optional[Array] = None) -> tuple[Array, Array]:
   """(O, 2) the actions executed now: the plan's (O, T, 2) step `age` (or pure pursuit of its
-  path (O, T, 2), execute="track"), through the filters policy turns on. last_accel (O,): the
-  acceleration this policy executed at its previous step (`logged_accel` before its first), NaN
-  where there is none (the jerk limit leaves those free); None reads it from the state
-  (`executed_accel`, within the model's bounds)."""
+  path (O, T, 2), execute="track"), through the filters policy turns on; and (O,) the
+  acceleration before the follow bound, the jerk limit's next reference (so that a braking the
+  bound forced ends when the leader no longer asks for it, instead of easing off at the jerk
+  limit for seconds). last_accel (O,): that reference from the previous step
+  (`logged_accel` before the first), NaN where there is none (the jerk limit leaves those
+  free); None reads it from the state (`executed_accel`, within the model's bounds)."""
   if policy.execute == "track":
     now = _track(state, path, age, policy.track_steps, cfg)
   else:
@@ -36,11 +44,15 @@ def execute(state: SimulatorState, plan: Array, path: Array, age, policy: Policy
       last_accel = jnp.clip(executed_accel(state, cfg.kinematics.dt), -cfg.kinematics.max_accel,
                             cfg.kinematics.max_accel)
     now = limit_jerk(now, last_accel, policy.jerk_limit, cfg.kinematics.dt)
+  unbound = now
+  if all(policy.follow):
+    bound = follow_bound(state, advance_plan(plan, age), policy.follow, cfg.kinematics.dt)
+    now = now.at[:, 0].set(jnp.minimum(now[:, 0], bound))
   if policy.stop_hold:
-    now = hold_at_stop(state, now, cfg.kinematics.dt)
+    now, unbound = (hold_at_stop(state, a, cfg.kinematics.dt) for a in (now, unbound))
   if policy.max_curvature > 0:
     now = limit_curvature(state, now, policy.max_curvature, cfg.kinematics.dt)
-  return now
+  return now, jnp.clip(unbound[:, 0], -cfg.kinematics.max_accel, cfg.kinematics.max_accel)
 
 
 def controlled_action(state: SimulatorState, controlled: Array, planned: Array, now: Array) -> Action:
@@ -149,3 +161,79 @@ def limit_curvature(state: SimulatorState, actions: Array, max_curvature: float,
   wheeled = (types == ObjectType.VEHICLE) | (types == ObjectType.CYCLIST)
   bound = jnp.where(wheeled, max_curvature * speed, jnp.inf)
   return actions.at[:, 1].set(jnp.clip(actions[:, 1], -bound, bound))
+
+
+def planned_path(state: SimulatorState, plan: Array, reach: Array, dt: float,
+                 stride: int = FOLLOW_PATH_STRIDE) -> Array:
+  """(O, K + 2, 2) where each object's remaining plan (O, T, 2) takes it in the world frame:
+  its position now, every `stride`-th planned position, then `reach` (O,) metres straight on
+  from the last one, so that a plan slower than the current speed is still searched as far
+  as the agent needs to stop."""
+  now = dynamics.states_from_trajectory(state.current_sim_trajectory)[:, 0]          # (O, 4)
+  states = dynamics.rollout(now, plan, dt)                                            # (O, T, 4)
+  points = states[:, stride - 1::stride]
+  last = states[:, -1]
+  beyond = last[:, :2] + reach[:, None] * geometry.unit(last[:, dynamics.PSI])
+  return jnp.concatenate([now[:, None, :2], points[..., :2], beyond[:, None]], axis=1)
+
+
+def _along_path(path: Array, xy: Array) -> tuple[Array, Array, Array]:
+  """Each point xy (O, 2) projected on each path (O, K, 2): the distance along path i to the
+  projection, the lateral distance (both (O_path, O_point)) and the path's direction there
+  (O_path, O_point, 2)."""
+  start, end = path[:, :-1], path[:, 1:]                                              # (O, K-1, 2)
+  seg = end - start
+  length = jnp.sqrt(jnp.sum(seg ** 2, -1) + 1e-12)                                    # (O, K-1)
+  before = jnp.cumsum(length, -1) - length
+  rel = xy[None, :, None] - start[:, None]                                            # (O, O, K-1, 2)
+  t = jnp.clip(jnp.sum(rel * seg[:, None], -1) / length[:, None] ** 2, 0.0, 1.0)
+  lateral = jnp.sqrt(jnp.sum((rel - t[..., None] * seg[:, None]) ** 2, -1) + 1e-12)
+  k = jnp.argmin(lateral, -1)                                                        # (O, O)
+  pick = lambda a: jnp.take_along_axis(a, k[..., None], -1)[..., 0]
+  along = pick(before[:, None] + t * length[:, None])
+  unit_seg = jnp.broadcast_to((seg / length[..., None])[:, None], rel.shape)         # (O, O, K-1, 2)
+  direction = jnp.take_along_axis(unit_seg, k[..., None, None], 2)[:, :, 0]
+  return along, pick(lateral), direction
+
+
+def safe_speed(gap: Array, lead_speed: Array, reaction: float, brake: float) -> Array:
+  """The highest speed (...,) from which a follower that reacts after `reaction` s and then
+  brakes at `brake` m/s^2 stops FOLLOW_MIN_GAP behind a leader `gap` m ahead (bumper to
+  bumper) that brakes as hard from `lead_speed` (Gipps' safe speed); 0 where it cannot."""
+  room = gap - FOLLOW_MIN_GAP + lead_speed ** 2 / (2.0 * brake)
+  root = jnp.sqrt(jnp.maximum((brake * reaction) ** 2 + 2.0 * brake * room, 0.0))
+  return jnp.where(room > 0, jnp.maximum(root - brake * reaction, 0.0), 0.0)
+
+
+def follow_bound(state: SimulatorState, plan: Array, follow, dt: float) -> Array:
+  """(O,) the highest acceleration that brings each vehicle or cyclist to its safe speed behind
+  every leader on its planned path (O, T, 2 from now; `planned_path`) within the reaction
+  time, and no harder than FOLLOW_MAX_BRAKE; +inf for other objects and where no leader is on the path.
+
+  A leader is any valid object whose centre lies ahead on the path, closer to it than the two
+  half widths, that stands (below FOLLOW_STILL_SPEED) or heads within 60 degrees of the path
+  (crossing traffic is left to the plan). follow: (reaction s, braking m/s^2) of `safe_speed`.
+  The plans do not keep a follower behind a leader that brakes or starts more slowly than they
+  expect: on real scenes ours' collisions were rear-end ones (docs/RESULTS.md, "Where ours
+  collides")."""
+  reaction, brake = follow
+  cur = state.current_sim_trajectory
+  v = dynamics.states_from_trajectory(cur)[:, 0, dynamics.V]                          # (O,)
+  reach = jnp.maximum(v, 0.0) * reaction + jnp.maximum(v, 0.0) ** 2 / (2.0 * brake) + FOLLOW_MIN_GAP
+  path = planned_path(state, plan, reach, dt)
+  xy, yaw, valid = cur.xy[:, 0], cur.yaw[:, 0], cur.valid[:, 0]
+  along, lateral, direction = _along_path(path, xy)                                   # (O, O)
+  width, length = cur.width[:, 0], cur.length[:, 0]
+  speed_along = jnp.sum(cur.vel_xy[None, :, 0] * direction, -1)                       # (O, O)
+  heading_along = jnp.sum(geometry.unit(yaw)[None] * direction, -1)
+  still = jnp.sqrt(jnp.sum(cur.vel_xy[:, 0] ** 2, -1)) < FOLLOW_STILL_SPEED
+  leader = ((along > 0) & (lateral < 0.5 * (width[:, None] + width[None]))
+            & (still[None] | (heading_along > FOLLOW_ALIGNED))
+            & valid[None] & ~jnp.eye(xy.shape[0], dtype=bool))
+  gap = along - 0.5 * (length[:, None] + length[None])
+  v_safe = safe_speed(gap, jnp.maximum(speed_along, 0.0), reaction, brake)
+  v_safe = jnp.min(jnp.where(leader, v_safe, jnp.inf), -1)                            # (O,)
+  types = state.object_metadata.object_types
+  wheeled = (types == ObjectType.VEHICLE) | (types == ObjectType.CYCLIST)
+  bound = jnp.maximum((v_safe - v) / reaction, -FOLLOW_MAX_BRAKE)   # Gipps: v_safe after the reaction time
+  return jnp.where(wheeled & valid & jnp.isfinite(v_safe), bound, jnp.inf)
