@@ -22,6 +22,7 @@ STOPPED_REVERSE_SPEED = 0.1   # m/s: slower reversing is a stop (float error, lo
 FOLLOW_MIN_GAP = 1.0          # m: bumper gap kept to a stopped leader
 FOLLOW_MAX_BRAKE = 8.0        # m/s^2: the hardest braking the follow bound asks for
 FOLLOW_STILL_SPEED = 1.0      # m/s: a slower object is an obstacle whatever its heading
+FOLLOW_SIDE_MARGIN = 0.25     # m: a leader this close beside the path (box to box) is still ahead of it
 FOLLOW_ALIGNED = 0.5          # cos 60 deg: a moving object heading within it of the path is a leader
 FOLLOW_PATH_STRIDE = 5        # plan steps per segment of the path searched for leaders
 
@@ -210,9 +211,10 @@ def follow_bound(state: SimulatorState, plan: Array, follow, dt: float) -> Array
   every leader on its planned path (O, T, 2 from now; `planned_path`) within the reaction
   time, and no harder than FOLLOW_MAX_BRAKE; +inf for other objects and where no leader is on the path.
 
-  A leader is any valid object whose centre lies ahead on the path, closer to it than the two
-  half widths, that stands (below FOLLOW_STILL_SPEED) or heads within 60 degrees of the path
-  (crossing traffic is left to the plan). follow: (reaction s, braking m/s^2) of `safe_speed`.
+  A leader is any valid object whose centre lies ahead on the path and whose box (as rotated
+  against the path) comes within FOLLOW_SIDE_MARGIN of the follower's half width, that stands
+  (below FOLLOW_STILL_SPEED) or heads within 60 degrees of the path (crossing traffic is left
+  to the plan). follow: (reaction s, braking m/s^2) of `safe_speed`.
   The plans do not keep a follower behind a leader that brakes or starts more slowly than they
   expect: on real scenes ours' collisions were rear-end ones (docs/RESULTS.md, "Where ours
   collides")."""
@@ -226,11 +228,15 @@ def follow_bound(state: SimulatorState, plan: Array, follow, dt: float) -> Array
   width, length = cur.width[:, 0], cur.length[:, 0]
   speed_along = jnp.sum(cur.vel_xy[None, :, 0] * direction, -1)                       # (O, O)
   heading_along = jnp.sum(geometry.unit(yaw)[None] * direction, -1)
+  across = jnp.sqrt(jnp.maximum(1.0 - heading_along ** 2, 0.0))                         # |sin| to the path
+  # The leader's box as the path sees it: a car standing at an angle reaches further across.
+  half_across = 0.5 * (length[None] * across + width[None] * jnp.abs(heading_along))
+  half_along = 0.5 * (length[None] * jnp.abs(heading_along) + width[None] * across)
   still = jnp.sqrt(jnp.sum(cur.vel_xy[:, 0] ** 2, -1)) < FOLLOW_STILL_SPEED
-  leader = ((along > 0) & (lateral < 0.5 * (width[:, None] + width[None]))
+  leader = ((along > 0) & (lateral < 0.5 * width[:, None] + half_across + FOLLOW_SIDE_MARGIN)
             & (still[None] | (heading_along > FOLLOW_ALIGNED))
             & valid[None] & ~jnp.eye(xy.shape[0], dtype=bool))
-  gap = along - 0.5 * (length[:, None] + length[None])
+  gap = along - 0.5 * length[:, None] - half_along
   v_safe = safe_speed(gap, jnp.maximum(speed_along, 0.0), reaction, brake)
   v_safe = jnp.min(jnp.where(leader, v_safe, jnp.inf), -1)                            # (O,)
   types = state.object_metadata.object_types
