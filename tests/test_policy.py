@@ -494,6 +494,18 @@ def test_follow_bound_sees_a_standing_car_by_its_rotated_box():
   assert np.asarray(bound(beside(np.deg2rad(15.0)), go))[0] < 0.0
 
 
+def test_follow_bound_searches_leaders_for_the_followers_only():
+  """follow_bound with a followers mask (the executed agents): the same bound for each follower
+  as over every object, leaders found among all objects, +inf for the others."""
+  state = _follow_scene((10.0, 2.0, 10.0, 0.0), (0.0, 12.0, 40.0, 60.0), (-2.0, -2.0, 2.0, -2.0))
+  still = jnp.zeros((4, 80, 2))
+  every = np.asarray(jax.jit(lambda s, p: policy.follow_bound(s, p, (0.5, 4.0), 0.1))(state, still))
+  some = jnp.asarray([True, False, True, False])
+  chosen = np.asarray(jax.jit(lambda s, p: policy.follow_bound(s, p, (0.5, 4.0), 0.1, some, 3))(state, still))
+  np.testing.assert_array_equal(chosen, [every[0], np.inf, every[2], np.inf])
+  assert chosen[0] == -policy.FOLLOW_MAX_BRAKE
+
+
 def test_follow_is_applied_after_the_jerk_limit():
   """execute with `follow` on: the bound overrides the plan and the jerk limit (a safety bound,
   not comfort), and off it changes nothing."""
@@ -589,3 +601,4 @@ def test_a_noisy_logged_speed_does_not_force_an_acceleration(models):
   action, _ = jax.jit(lambda s, r: policy.step(s, models, CFG, r, policy.PolicyConfig(
       select_samples=1, still_gate=(0.0, 0.0))))(noisy, jax.random.PRNGKey(1))
   assert np.all(np.abs(np.asarray(action.data)[:, 0]) <= CFG.kinematics.max_accel + 1e-5)
+

@@ -67,7 +67,7 @@ def step(state: SimulatorState, models: Models, cfg: Config, rng: Array,
   y0 = planning.sample(models, scene, cfg, policy, rng, adversary, road)               # (S, A, d)
   y0 = selection.select(y0, models, scene, cfg, policy, adversary, road)               # (1, A, d)
   plan, planned, path = planning.decode(y0, models, scene, state, cfg, policy)         # (O, T, 2)
-  now, _ = execution.execute(state, plan, path, 0, policy, cfg)                        # (O, 2)
+  now, _ = execution.execute(state, plan, path, 0, policy, cfg, followers=controlled & planned)   # (O, 2)
   return execution.controlled_action(state, controlled, planned, now), controlled
 
 
@@ -108,7 +108,8 @@ def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
     plan, plan_valid, path = jax.lax.cond(
         due, lambda: replan(models, state, ps, rng), lambda: (ps.plan, ps.plan_valid, ps.path))
     age = jnp.where(due, 0, ps.age)
-    now, reference = execution.execute(state, plan, path, age, policy, cfg, ps.accel)          # (O, 2), (O,)
+    now, reference = execution.execute(state, plan, path, age, policy, cfg, ps.accel,
+                                       ps.controlled & plan_valid)                          # (O, 2), (O,)
     action = execution.controlled_action(state, ps.controlled, plan_valid, now)
     accel = jnp.where(action.valid[:, 0], reference, jnp.nan)
     new = ps.replace(plan=plan, plan_valid=plan_valid, path=path, age=age + 1, accel=accel)

@@ -28,14 +28,16 @@ FOLLOW_PATH_STRIDE = 5        # plan steps per segment of the path searched for 
 
 
 def execute(state: SimulatorState, plan: Array, path: Array, age, policy: PolicyConfig, cfg: Config,
-            last_accel: Optional[Array] = None) -> tuple[Array, Array]:
+            last_accel: Optional[Array] = None, followers: Optional[Array] = None) -> tuple[Array, Array]:
   """(O, 2) the actions executed now: the plan's (O, T, 2) step `age` (or pure pursuit of its
   path (O, T, 2), execute="track"), through the filters policy turns on; and (O,) the
   acceleration before the follow bound, the jerk limit's next reference (so that a braking the
   bound forced ends when the leader no longer asks for it, instead of easing off at the jerk
   limit for seconds). last_accel (O,): that reference from the previous step
   (`logged_accel` before the first), NaN where there is none (the jerk limit leaves those
-  free); None reads it from the state (`executed_accel`, within the model's bounds)."""
+  free); None reads it from the state (`executed_accel`, within the model's bounds).
+  followers (O,): the objects whose actions are executed (at most cfg.features.max_agents), the
+  only ones the follow bound is computed for; None: every object."""
   if policy.execute == "track":
     now = _track(state, path, age, policy.track_steps, cfg)
   else:
@@ -47,7 +49,8 @@ def execute(state: SimulatorState, plan: Array, path: Array, age, policy: Policy
     now = limit_jerk(now, last_accel, policy.jerk_limit, cfg.kinematics.dt)
   unbound = now
   if all(policy.follow):
-    bound = follow_bound(state, advance_plan(plan, age), policy.follow, cfg.kinematics.dt)
+    bound = follow_bound(state, advance_plan(plan, age), policy.follow, cfg.kinematics.dt, followers,
+                         cfg.features.max_agents)
     now = now.at[:, 0].set(jnp.minimum(now[:, 0], bound))
   if policy.stop_hold:
     now, unbound = (hold_at_stop(state, a, cfg.kinematics.dt) for a in (now, unbound))
@@ -164,14 +167,13 @@ def limit_curvature(state: SimulatorState, actions: Array, max_curvature: float,
   return actions.at[:, 1].set(jnp.clip(actions[:, 1], -bound, bound))
 
 
-def planned_path(state: SimulatorState, plan: Array, reach: Array, dt: float,
+def planned_path(now: Array, plan: Array, reach: Array, dt: float,
                  stride: int = FOLLOW_PATH_STRIDE) -> Array:
-  """(O, K + 2, 2) where each object's remaining plan (O, T, 2) takes it in the world frame:
-  its position now, every `stride`-th planned position, then `reach` (O,) metres straight on
-  from the last one, so that a plan slower than the current speed is still searched as far
-  as the agent needs to stop."""
-  now = dynamics.states_from_trajectory(state.current_sim_trajectory)[:, 0]          # (O, 4)
-  states = dynamics.rollout(now, plan, dt)                                            # (O, T, 4)
+  """(F, K + 2, 2) where each follower's remaining plan (F, T, 2) takes it in the world frame
+  from its state now (F, 4): its position now, every `stride`-th planned position, then `reach`
+  (F,) metres straight on from the last one, so that a plan slower than the current speed is
+  still searched as far as the agent needs to stop."""
+  states = dynamics.rollout(now, plan, dt)                                            # (F, T, 4)
   points = states[:, stride - 1::stride]
   last = states[:, -1]
   beyond = last[:, :2] + reach[:, None] * geometry.unit(last[:, dynamics.PSI])
@@ -179,20 +181,19 @@ def planned_path(state: SimulatorState, plan: Array, reach: Array, dt: float,
 
 
 def _along_path(path: Array, xy: Array) -> tuple[Array, Array, Array]:
-  """Each point xy (O, 2) projected on each path (O, K, 2): the distance along path i to the
-  projection, the lateral distance (both (O_path, O_point)) and the path's direction there
-  (O_path, O_point, 2)."""
+  """Each point xy (O, 2) projected on each path (F, K, 2): the distance along path i to the
+  projection, the lateral distance (both (F, O)) and the path's direction there (F, O, 2)."""
   start, end = path[:, :-1], path[:, 1:]                                              # (O, K-1, 2)
   seg = end - start
   length = jnp.sqrt(jnp.sum(seg ** 2, -1) + 1e-12)                                    # (O, K-1)
   before = jnp.cumsum(length, -1) - length
-  rel = xy[None, :, None] - start[:, None]                                            # (O, O, K-1, 2)
+  rel = xy[None, :, None] - start[:, None]                                            # (F, O, K-1, 2)
   t = jnp.clip(jnp.sum(rel * seg[:, None], -1) / length[:, None] ** 2, 0.0, 1.0)
   lateral = jnp.sqrt(jnp.sum((rel - t[..., None] * seg[:, None]) ** 2, -1) + 1e-12)
-  k = jnp.argmin(lateral, -1)                                                        # (O, O)
+  k = jnp.argmin(lateral, -1)                                                        # (F, O)
   pick = lambda a: jnp.take_along_axis(a, k[..., None], -1)[..., 0]
   along = pick(before[:, None] + t * length[:, None])
-  unit_seg = jnp.broadcast_to((seg / length[..., None])[:, None], rel.shape)         # (O, O, K-1, 2)
+  unit_seg = jnp.broadcast_to((seg / length[..., None])[:, None], rel.shape)         # (F, O, K-1, 2)
   direction = jnp.take_along_axis(unit_seg, k[..., None, None], 2)[:, :, 0]
   return along, pick(lateral), direction
 
@@ -206,7 +207,8 @@ def safe_speed(gap: Array, lead_speed: Array, reaction: float, brake: float) -> 
   return jnp.where(room > 0, jnp.maximum(root - brake * reaction, 0.0), 0.0)
 
 
-def follow_bound(state: SimulatorState, plan: Array, follow, dt: float) -> Array:
+def follow_bound(state: SimulatorState, plan: Array, follow, dt: float,
+                 followers: Optional[Array] = None, max_followers: Optional[int] = None) -> Array:
   """(O,) the highest acceleration that brings each vehicle or cyclist to its safe speed behind
   every leader on its planned path (O, T, 2 from now; `planned_path`) within the reaction
   time, and no harder than FOLLOW_MAX_BRAKE; +inf for other objects and where no leader is on the path.
@@ -214,32 +216,44 @@ def follow_bound(state: SimulatorState, plan: Array, follow, dt: float) -> Array
   A leader is any valid object whose centre lies ahead on the path and whose box (as rotated
   against the path) comes within FOLLOW_SIDE_MARGIN of the follower's half width, that stands
   (below FOLLOW_STILL_SPEED) or heads within 60 degrees of the path (crossing traffic is left
-  to the plan). follow: (reaction s, braking m/s^2) of `safe_speed`.
+  to the plan). follow: (reaction s, braking m/s^2) of `safe_speed`. followers (O,): the
+  objects to bound (+inf elsewhere), at most max_followers (static) of them; the search is
+  followers x objects x path segments, so bounding only the executed agents halves it on a
+  128-object scene (docs/BENCHMARKS.md, "The follow bound"). None: every object.
   The plans do not keep a follower behind a leader that brakes or starts more slowly than they
   expect: on real scenes ours' collisions were rear-end ones (docs/RESULTS.md, "Where ours
   collides")."""
   reaction, brake = follow
   cur = state.current_sim_trajectory
-  v = dynamics.states_from_trajectory(cur)[:, 0, dynamics.V]                          # (O,)
+  num_objects = cur.xy.shape[0]
+  if followers is None:
+    index, chosen = jnp.arange(num_objects), jnp.ones((num_objects,), bool)
+  else:
+    size = min(num_objects, max_followers or num_objects)
+    index = jnp.nonzero(followers, size=size, fill_value=0)[0]                        # (F,)
+    chosen = jnp.arange(size) < jnp.sum(followers)
+  now = dynamics.states_from_trajectory(cur)[:, 0]                                    # (O, 4)
+  v = now[index, dynamics.V]                                                          # (F,)
   reach = jnp.maximum(v, 0.0) * reaction + jnp.maximum(v, 0.0) ** 2 / (2.0 * brake) + FOLLOW_MIN_GAP
-  path = planned_path(state, plan, reach, dt)
+  path = planned_path(now[index], plan[index], reach, dt)
   xy, yaw, valid = cur.xy[:, 0], cur.yaw[:, 0], cur.valid[:, 0]
-  along, lateral, direction = _along_path(path, xy)                                   # (O, O)
+  along, lateral, direction = _along_path(path, xy)                                   # (F, O)
   width, length = cur.width[:, 0], cur.length[:, 0]
-  speed_along = jnp.sum(cur.vel_xy[None, :, 0] * direction, -1)                       # (O, O)
+  speed_along = jnp.sum(cur.vel_xy[None, :, 0] * direction, -1)                       # (F, O)
   heading_along = jnp.sum(geometry.unit(yaw)[None] * direction, -1)
   across = jnp.sqrt(jnp.maximum(1.0 - heading_along ** 2, 0.0))                         # |sin| to the path
   # The leader's box as the path sees it: a car standing at an angle reaches further across.
   half_across = 0.5 * (length[None] * across + width[None] * jnp.abs(heading_along))
   half_along = 0.5 * (length[None] * jnp.abs(heading_along) + width[None] * across)
   still = jnp.sqrt(jnp.sum(cur.vel_xy[:, 0] ** 2, -1)) < FOLLOW_STILL_SPEED
-  leader = ((along > 0) & (lateral < 0.5 * width[:, None] + half_across + FOLLOW_SIDE_MARGIN)
+  leader = ((along > 0) & (lateral < 0.5 * width[index][:, None] + half_across + FOLLOW_SIDE_MARGIN)
             & (still[None] | (heading_along > FOLLOW_ALIGNED))
-            & valid[None] & ~jnp.eye(xy.shape[0], dtype=bool))
-  gap = along - 0.5 * length[:, None] - half_along
+            & valid[None] & (index[:, None] != jnp.arange(num_objects)[None]))
+  gap = along - 0.5 * length[index][:, None] - half_along
   v_safe = safe_speed(gap, jnp.maximum(speed_along, 0.0), reaction, brake)
-  v_safe = jnp.min(jnp.where(leader, v_safe, jnp.inf), -1)                            # (O,)
-  types = state.object_metadata.object_types
+  v_safe = jnp.min(jnp.where(leader, v_safe, jnp.inf), -1)                            # (F,)
+  types = state.object_metadata.object_types[index]
   wheeled = (types == ObjectType.VEHICLE) | (types == ObjectType.CYCLIST)
   bound = jnp.maximum((v_safe - v) / reaction, -FOLLOW_MAX_BRAKE)   # Gipps: v_safe after the reaction time
-  return jnp.where(wheeled & valid & jnp.isfinite(v_safe), bound, jnp.inf)
+  bound = jnp.where(chosen & wheeled & valid[index] & jnp.isfinite(v_safe), bound, jnp.inf)
+  return jnp.full((num_objects,), jnp.inf).at[index].min(bound)
