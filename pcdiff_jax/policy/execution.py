@@ -183,9 +183,9 @@ def planned_path(now: Array, plan: Array, reach: Array, dt: float,
 def _along_path(path: Array, xy: Array) -> tuple[Array, Array, Array]:
   """Each point xy (O, 2) projected on each path (F, K, 2): the distance along path i to the
   projection, the lateral distance (both (F, O)) and the path's direction there (F, O, 2)."""
-  start, end = path[:, :-1], path[:, 1:]                                              # (O, K-1, 2)
+  start, end = path[:, :-1], path[:, 1:]                                              # (F, K-1, 2)
   seg = end - start
-  length = jnp.sqrt(jnp.sum(seg ** 2, -1) + 1e-12)                                    # (O, K-1)
+  length = jnp.sqrt(jnp.sum(seg ** 2, -1) + 1e-12)                                    # (F, K-1)
   before = jnp.cumsum(length, -1) - length
   rel = xy[None, :, None] - start[:, None]                                            # (F, O, K-1, 2)
   t = jnp.clip(jnp.sum(rel * seg[:, None], -1) / length[:, None] ** 2, 0.0, 1.0)
@@ -217,9 +217,10 @@ def follow_bound(state: SimulatorState, plan: Array, follow, dt: float,
   against the path) comes within FOLLOW_SIDE_MARGIN of the follower's half width, that stands
   (below FOLLOW_STILL_SPEED) or heads within 60 degrees of the path (crossing traffic is left
   to the plan). follow: (reaction s, braking m/s^2) of `safe_speed`. followers (O,): the
-  objects to bound (+inf elsewhere), at most max_followers (static) of them; the search is
-  followers x objects x path segments, so bounding only the executed agents halves it on a
-  128-object scene (docs/BENCHMARKS.md, "The follow bound"). None: every object.
+  objects to bound (+inf elsewhere), at most max_followers (static; any beyond are left
+  unbound) of them; the search is followers x objects x path segments, so bounding only the
+  executed agents halves it on a 128-object scene (docs/BENCHMARKS.md, "The follow bound for
+  the executed agents only"). None: every object.
   The plans do not keep a follower behind a leader that brakes or starts more slowly than they
   expect: on real scenes ours' collisions were rear-end ones (docs/RESULTS.md, "Where ours
   collides")."""
