@@ -248,7 +248,9 @@ def _markdown(summary: dict) -> str:
   r = summary["rates"]
   lines += [f"Mean ± std over {summary['seeds']} seed(s), {summary['num_rollouts']} rollout(s) per "
             f"scenario and seed (minADE: the best of them). Collision rate with the objects that "
-            f"enter later counted as partners too: {100 * r['collision_with_entering_rate']:.2f}%. "
+            f"enter later counted as partners too: {100 * r['collision_with_entering_rate']:.2f}%; "
+            f"of the collision rate, {100 * r['collision_with_replayed_rate']:.2f} points are "
+            f"agents hit by (or hitting) an object that replays its log. "
             f"Vehicle-vehicle collision rate "
             f"{100 * r['vehicle_collision_rate']:.2f}%; vehicles starting off-road "
             f"{100 * r['start_offroad_fraction']:.2f}%; of the off-road rate, "
@@ -343,7 +345,8 @@ def evaluate(scenarios: Sequence[str] | str, out_dir: str, cfg: EvalConfig,
           row = {"scenario_id": meta.scenario_id[i], "path": meta.path[i], "record": meta.record_index[i],
                  "seed": seed}
           row.update({k: v for k, v in metrics_lib.aggregate(one).items()
-                      if k in ("collision_rate", "offroad_rate", "min_ade", "num_evaluated",
+                      if k in ("collision_rate", "collision_with_replayed_rate", "offroad_rate",
+                               "min_ade", "num_evaluated",
                                "lost_agents", "log_following_agents", "still_moved_rate",
                                "num_still_agents")})
           per_scenario.write(json.dumps(row) + "\n")

@@ -178,9 +178,12 @@ def score_rollout(final_state: SimulatorState, start_step: int, num_steps: int, 
   """Scores of one rolled-out scenario (unbatched; vmap for batches)."""
   sim, log = final_state.sim_trajectory, final_state.log_trajectory
   evaluated = evaluated_agents(final_state, start_step, max_agents)
+  at_start = sim.valid[:, start_step]
+  log_following = at_start & ~final_state.object_metadata.is_controlled
   events = sim_metrics.event_counts(sim, log, final_state.roadgraph_points,
                                     final_state.object_metadata.object_types, evaluated, start_step,
-                                    max_road_edge_points, max_evaluated=max_agents)
+                                    max_road_edge_points, max_evaluated=max_agents,
+                                    replayed=log_following)
   t = jnp.arange(sim.num_timesteps)
   steps = (t > start_step) & (t <= start_step + num_steps)                  # (T,)
   mask = evaluated[:, None] & steps[None]                                    # (O, T)
@@ -189,12 +192,11 @@ def score_rollout(final_state: SimulatorState, start_step: int, num_steps: int, 
   count = jnp.sum(both, -1)
   ade = jnp.sum(jnp.where(both, dist, 0.0), -1) / jnp.maximum(count, 1)
   controlled, lost = lost_agents(final_state, start_step, num_steps)
-  at_start = sim.valid[:, start_step]
   still, moved = still_moved(final_state, start_step, num_steps, evaluated & at_start)
   return RolloutScores(events=events, hist_sim=_hist_counts(sim, mask),
                        hist_log=_hist_counts(log, mask), ade=ade, ade_valid=count > 0,
                        controlled=controlled, lost=lost,
-                       log_following=at_start & ~final_state.object_metadata.is_controlled,
+                       log_following=log_following,
                        still=still, still_moved=moved)
 
 

@@ -42,6 +42,24 @@ def test_collision_and_offroad_on_a_hand_built_scene():
   assert int(c2.became_offroad) == 1 and int(c2.offroad_past_log) == 1
 
 
+def test_collisions_with_objects_replaying_their_log_are_counted_apart():
+  """Agent 3 rear-ends the SDC; with the SDC replaying its log, both collisions have a partner
+  that replays its log (agent 3's is the SDC, the SDC's own partner is agent 3, not replayed)."""
+  s = make_scene()
+  sim = s.log_trajectory
+  t = jnp.arange(sim.num_timesteps)
+  sim = sim.replace(x=sim.x.at[3].set(jnp.where(t > 5, sim.x[3, 5] + 30.0 * (t - 5) * 0.1, sim.x[3])))
+  evaluated = nearest_to_sdc(s.replace(timestep=jnp.int32(5)), 4, include_sdc=True)
+  count = lambda replayed: metrics.event_counts(sim, s.log_trajectory, s.roadgraph_points,
+                                                s.object_metadata.object_types, evaluated, 5,
+                                                replayed=replayed)
+  sdc_replayed = count(jnp.arange(4) == 0)
+  assert int(sdc_replayed.collided) == 2 and int(sdc_replayed.collided_with_replayed) == 1
+  assert sdc_replayed.rates()["collision_with_replayed_rate"] == 0.25
+  assert int(count(None).collided_with_replayed) == 0
+  assert int(count(jnp.arange(4) == 1).collided_with_replayed) == 0   # agent 1 is nobody's partner
+
+
 def test_pairs_overlapping_at_start_are_not_collisions():
   s = make_scene(xs=(0.0, 0.0, 10.0, -2.0), speeds=(10.0, 8.0, 0.0, 10.0))  # 3 overlaps the SDC from the start
   c = _counts(s, s.log_trajectory, k=4)

@@ -13,7 +13,9 @@ that batches and seeds sum exactly:
   tracker lost a parked car and found it again under a new id), so the car
   kept in place would "collide" with itself (`collided_with_entering` counts
   them; docs/RESULTS.md, "Table I (real WOMD val)"). `collided_any` counts every
-  overlap with any object;
+  overlap with any object; `collided_with_replayed` the collisions (as `collided`) with an
+  object that replays its log and so cannot react (the SDC on its log, objects beyond the
+  reactive set: rear-ended agents, mostly; "Where ours collides");
   `vehicle_collided` counts evaluated vehicles hitting another vehicle (WOMD
   logs have pedestrian boxes that overlap each other and parked cars).
 - off-road: an evaluated vehicle on the road at the start step is off it at
@@ -119,6 +121,7 @@ class EventCounts:
   collided: Array
   collided_with_entering: Array  # collided, objects whose track starts after the start step included
   collided_any: Array
+  collided_with_replayed: Array  # collided, with an object replaying its log among the partners
   vehicle_collided: Array      # evaluated vehicles overlapping another vehicle
   num_vehicles: Array          # evaluated vehicles
   start_offroad: Array         # ... off the road at the start step
@@ -134,6 +137,7 @@ class EventCounts:
         "collision_rate": total.collided / max(total.num_evaluated, 1.0),
         "collision_with_entering_rate": total.collided_with_entering / max(total.num_evaluated, 1.0),
         "collision_any_rate": total.collided_any / max(total.num_evaluated, 1.0),
+        "collision_with_replayed_rate": total.collided_with_replayed / max(total.num_evaluated, 1.0),
         "vehicle_collision_rate": total.vehicle_collided / max(total.num_vehicles, 1.0),
         "offroad_rate": total.became_offroad / max(on_road, 1.0),
         "offroad_any_rate": total.offroad_any / max(total.num_vehicles, 1.0),
@@ -149,7 +153,8 @@ class EventCounts:
 
 def event_counts(sim: Trajectory, log: Trajectory, roadgraph: RoadgraphPoints,
                  object_types: Array, evaluated: Array, start_step: int,
-                 max_edge_points: int = 4096, max_evaluated: Optional[int] = None) -> EventCounts:
+                 max_edge_points: int = 4096, max_evaluated: Optional[int] = None,
+                 replayed: Optional[Array] = None) -> EventCounts:
   """Collision and off-road counts of a rollout.
 
   Args:
@@ -161,6 +166,8 @@ def event_counts(sim: Trajectory, log: Trajectory, roadgraph: RoadgraphPoints,
     max_evaluated: an upper bound on evaluated.sum(); when given, the
       off-road test (the costly part: every box corner against every edge
       sample) runs on those objects and steps >= start_step only.
+    replayed: (..., O) bool, the objects that replay their log (not the
+      method's); None: none.
   """
   num_t = sim.num_timesteps
   after = jnp.arange(num_t) > start_step                       # (T,)
@@ -175,6 +182,9 @@ def event_counts(sim: Trajectory, log: Trajectory, roadgraph: RoadgraphPoints,
   present = sim.valid[..., start_step]                         # (..., O) the sim agents
   new_pairs = new_with_entering & present[..., None, None, :]
   collided = jnp.any(new_pairs, axis=(-3, -1))
+  if replayed is None:
+    replayed = jnp.zeros_like(present)
+  collided_with_replayed = jnp.any(new_pairs & replayed[..., None, None, :], axis=(-3, -1))
   is_vehicle = object_types == ObjectType.VEHICLE
   vehicle_collided = jnp.any(new_pairs & is_vehicle[..., None, None, :], axis=(-3, -1))
 
@@ -200,6 +210,7 @@ def event_counts(sim: Trajectory, log: Trajectory, roadgraph: RoadgraphPoints,
       collided=count(collided & evaluated),
       collided_with_entering=count(jnp.any(new_with_entering, axis=(-3, -1)) & evaluated),
       collided_any=count(collided_any & evaluated),
+      collided_with_replayed=count(collided_with_replayed & evaluated),
       vehicle_collided=count(vehicle_collided & vehicle),
       num_vehicles=count(vehicle),
       start_offroad=count(start_off & vehicle),
