@@ -43,8 +43,8 @@ def test_collision_and_offroad_on_a_hand_built_scene():
 
 
 def test_collisions_with_objects_replaying_their_log_are_counted_apart():
-  """Agent 3 rear-ends the SDC; with the SDC replaying its log, both collisions have a partner
-  that replays its log (agent 3's is the SDC, the SDC's own partner is agent 3, not replayed)."""
+  """Agent 3 rear-ends the SDC. With the SDC replaying its log, agent 3's collision has a partner
+  that replays its log and the SDC's does not (its partner, agent 3, is the method's)."""
   s = make_scene()
   sim = s.log_trajectory
   t = jnp.arange(sim.num_timesteps)
