@@ -148,6 +148,9 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--lane-inputs", action="store_true",
                  help="give the denoiser (--policy simpl-ar: SIMPL-AR's encoder) each agent's lane-relative "
                       "inputs (model.lane_context) through new zero-initialised projections, trained from here on")
+  p.add_argument("--anchor-inputs", action="store_true",
+                 help="pcdiff: condition the denoiser on one proposal per agent (config "
+                      "diffusion.denoiser.anchor_inputs; a new zero-initialised projection, trained from here on)")
   p.add_argument("--rollout-batch", type=int, default=4, help="scenes per jitted rollout call")
   p.add_argument("--max-agents", type=int, default=64, help="reactive agents the policy controls")
   p.add_argument("--seed", type=int, default=0)
@@ -277,9 +280,11 @@ def main(argv=None) -> int:
       encoder_dir = os.path.join(args.source, "encoder")
       if args.encoder_from:
         models, model_cfg, encoder_dir = _swap_encoder(models, model_cfg, args.encoder_from)
-      if args.lane_inputs:
+      new_inputs = {k: True for k, on in (("lane_inputs", args.lane_inputs),
+                                          ("anchor_inputs", args.anchor_inputs)) if on}
+      if new_inputs:
         from pcdiff_jax.model import denoiser
-        den_cfg = dataclasses.replace(model_cfg.diffusion.denoiser, lane_inputs=True)
+        den_cfg = dataclasses.replace(model_cfg.diffusion.denoiser, **new_inputs)
         model_cfg = dataclasses.replace(model_cfg, diffusion=dataclasses.replace(model_cfg.diffusion,
                                                                                  denoiser=den_cfg))
         models = models.replace(denoiser=denoiser.with_new_inputs(models.denoiser, den_cfg))

@@ -91,6 +91,11 @@ class DenoiserConfig:
   adds each agent's lane-relative inputs (`model.lane_context`) to its token
   through a zero-initialised projection, so a model trained without them
   loads and starts from the same function (`denoiser.with_new_inputs`).
+  `anchor_inputs` conditions each agent on one of its proposals (the
+  anchor, added the same way): trained on the proposal nearest the logged
+  future, sampled from the proposal probabilities at test time, so a plan
+  commits to a mode instead of the mean of stop and go (`planner.draw_anchor`;
+  docs/RESULTS.md, "Ablation: anchor inputs").
   """
   d_model: int = 128
   num_heads: int = 8
@@ -101,6 +106,7 @@ class DenoiserConfig:
   radius: float = 100.0            # m, distance scale of the relative pose
   compute_dtype: str = "float32"   # or "bfloat16" (matmuls; parameters stay float32)
   lane_inputs: bool = False        # each agent's lane-relative inputs (`model.lane_context`)
+  anchor_inputs: bool = False      # each agent's anchor proposal (`planner.draw_anchor`)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -2,6 +2,7 @@
 (the CLI on a trained model: test_trained_pipeline.py)."""
 from __future__ import annotations
 
+import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -141,6 +142,27 @@ def test_diffusion_loss_finite_with_masked_agents(scene_example):
   tiled = jax.tree_util.tree_map(lambda a: jnp.repeat(a, 3, 0), cond.inputs)
   np.testing.assert_allclose(shared, apply(ys, tiled), rtol=1e-5, atol=1e-5)
   del latent
+
+
+def test_training_anchors_each_agent_on_the_proposal_its_logged_future_took(scene_example):
+  """The stage-2 loss with anchors: finite, and the new projection learns."""
+  from pcdiff_jax.model import encoder
+  from pcdiff_jax.training import diffusion_stage
+  anchored = dataclasses.replace(CFG, diffusion=dataclasses.replace(
+      CFG.diffusion, denoiser=dataclasses.replace(CFG.diffusion.denoiser, anchor_inputs=True)))
+  enc = encoder.init(jax.random.key(0), scene_example.feats, CFG.encoder)
+  stats = diffusion_stage.fit_latent(enc, anchored, scene_example, 1, batch_size=1)
+  cond = jax.jit(lambda f: planner.condition(enc, stats, f, anchored))(scene_example.feats)
+  one = jax.tree_util.tree_map(lambda a: a[0], cond.inputs)
+  params = denoiser_lib.init(jax.random.key(1), cond.mu[0], jnp.int32(0), one, anchored.diffusion.denoiser)
+  out = params["params"]["out"]["kernel"]   # zero at init, which would stop every gradient below it
+  params = {"params": {**params["params"], "out": {
+      "kernel": 0.1 * jax.random.normal(jax.random.key(3), out.shape), "bias": params["params"]["out"]["bias"]}}}
+  extra = {"encoder": enc, "stats": stats}
+  loss_fn = lambda p: diffusion_stage.diffusion_loss(p, extra, scene_example, jax.random.key(2), anchored)[0]
+  loss, grads = jax.jit(jax.value_and_grad(loss_fn))(params)
+  assert np.isfinite(float(loss))
+  assert float(jnp.abs(grads["params"]["in_anchor"]["kernel"]).max()) > 0
 
 
 def _train(argv):

@@ -17,6 +17,9 @@ of the sinusoidal step embedding. Each of the L pre-norm layers has
    Dense([y^k / scale, log p^k]);
 4. an MLP; dropout after each residual branch.
 
+With `anchor_inputs` each agent token also gets Dense(anchor / scale), the
+latent of one of its proposals chosen per sample (`planner.draw_anchor`).
+
 Padded agents and context tokens are masked as senders; the output is zero
 for padded agents. The final projection starts at zero, so an untrained
 model predicts no noise. `compute_dtype` "bfloat16" runs the matmuls in
@@ -39,6 +42,7 @@ from pcdiff_jax.model import lane_context
 from pcdiff_jax.sim.datatypes import Array
 
 _NEG = -1e9
+_NO_ANCHOR = "the denoiser's config has anchor_inputs: pass each agent's anchor (planner.draw_anchor)"
 
 
 @struct.dataclass
@@ -192,6 +196,8 @@ class Denoiser(nn.Module):
     self.in_y, self.in_ctx = Dense(), Dense()
     if cfg.lane_inputs:   # zero-initialised: a model trained without them is unchanged at first
       self.in_lane = Dense(kernel_init=nn.initializers.zeros)
+    if cfg.anchor_inputs:   # the same for the anchor proposal
+      self.in_anchor = Dense(kernel_init=nn.initializers.zeros)
     self.Dense_2, self.Dense_3 = Dense(), Dense()                        # relative pose edge MLP
     self.ctx_proj = Dense()
     if cfg.use_prior:
@@ -222,32 +228,44 @@ class Denoiser(nn.Module):
         ctx_mask=inputs.context_valid, prior_mask=prior_mask, agent_valid=av,
         layers=tuple(layer.context(edges, ctx, prior) for layer in self.layers))
 
-  def denoise(self, y: Array, s: Array, c: DenoiserContext, deterministic: bool = True) -> Array:
+  def denoise(self, y: Array, s: Array, c: DenoiserContext, deterministic: bool = True,
+              anchor: Optional[Array] = None) -> Array:
+    """anchor (A, d_y): each agent's anchor proposal latent, required with
+    `anchor_inputs` (per sample, so it is not part of the shared context)."""
     scale = self.config.latent_scale
     temb = self.Dense_0(nn.gelu(self.Dense_1(step_embedding(s, self.config.d_model))))
     h = self.in_y(y / scale) + c.base + temb[None]
+    if self.config.anchor_inputs:
+      if anchor is None:
+        raise ValueError(_NO_ANCHOR)
+      h = h + self.in_anchor(anchor / scale)
     for layer, lc in zip(self.layers, c.layers):
       h = layer(h, lc, c, deterministic)
     out = self.out(self.ln_out(h)).astype(jnp.float32) * scale
     return jnp.where(c.agent_valid[:, None], out, 0.0)
 
-  def __call__(self, y: Array, s: Array, inputs: DenoiserInputs, deterministic: bool = True) -> Array:
-    return self.denoise(y, s, self.context(inputs), deterministic)
+  def __call__(self, y: Array, s: Array, inputs: DenoiserInputs, deterministic: bool = True,
+               anchor: Optional[Array] = None) -> Array:
+    return self.denoise(y, s, self.context(inputs), deterministic, anchor)
 
 
 def init(rng: Array, y: Array, s: Array, inputs: DenoiserInputs, config: DenoiserConfig) -> Any:
   """Parameters for one scene's shapes (pass unbatched y (A, d_y) and inputs)."""
   # Jitted: an eager init compiles every op on its own.
-  return jax.jit(Denoiser(config, y.shape[-1]).init)(rng, y, s, inputs)
+  return jax.jit(Denoiser(config, y.shape[-1]).init)(rng, y, s, inputs, True, jnp.zeros_like(y))
 
 
 def with_new_inputs(params: Any, config: DenoiserConfig) -> Any:
   """Parameters of a model trained without the optional inputs that `config`
-  turns on (`lane_inputs`), extended by their zero-initialised projections:
-  the extended model computes the same function until it is trained."""
+  turns on (`lane_inputs`, `anchor_inputs`), extended by their zero-initialised
+  projections: the extended model computes the same function until it is trained."""
   inner = params["params"]
   if config.lane_inputs and "in_lane" not in inner:
     inner = {**inner, "in_lane": lane_context.zero_projection(config.d_model)}
+  if config.anchor_inputs and "in_anchor" not in inner:
+    d_y = inner["in_y"]["kernel"].shape[0]
+    inner = {**inner, "in_anchor": {"kernel": jnp.zeros((d_y, config.d_model)),
+                                    "bias": jnp.zeros((config.d_model,))}}
   return {**params, "params": inner}
 
 
@@ -258,30 +276,41 @@ def context(params: Any, inputs: DenoiserInputs, config: DenoiserConfig, latent_
   return jax.vmap(lambda ii: model.apply(params, ii, method=Denoiser.context))(inputs)
 
 
+def _anchors(y: Array, anchor: Optional[Array], config: DenoiserConfig) -> Array:
+  """The anchors to vmap over: `anchor` with `anchor_inputs` (required), else
+  zeros the model does not read."""
+  if not config.anchor_inputs:
+    return jnp.zeros_like(y)
+  if anchor is None:
+    raise ValueError(_NO_ANCHOR)
+  return anchor
+
+
 def apply_with_context(params: Any, y: Array, s: Array, ctx: DenoiserContext,
-                       config: DenoiserConfig) -> Array:
+                       config: DenoiserConfig, anchor: Optional[Array] = None) -> Array:
   """`apply` (deterministic) from a precomputed context: y (B, A, d_y), s () or
   (B,); ctx batched over B, or over 1 to share one scene's context among B
-  samples of it."""
+  samples of it; anchor (B, A, d_y) with `anchor_inputs`."""
   model = Denoiser(config, y.shape[-1])
   s = jnp.broadcast_to(jnp.asarray(s), y.shape[:1])
-  one = lambda yy, ss, cc: model.apply(params, yy, ss, cc, method=Denoiser.denoise)
+  anchor = _anchors(y, anchor, config)
+  one = lambda yy, ss, cc, aa: model.apply(params, yy, ss, cc, True, aa, method=Denoiser.denoise)
   if ctx.agent_valid.shape[0] == 1 and y.shape[0] > 1:
     shared = jax.tree_util.tree_map(lambda a: a[0], ctx)
-    return jax.vmap(lambda yy, ss: one(yy, ss, shared))(y, s)
-  return jax.vmap(one)(y, s, ctx)
+    return jax.vmap(lambda yy, ss, aa: one(yy, ss, shared, aa))(y, s, anchor)
+  return jax.vmap(one)(y, s, ctx, anchor)
 
 
 def apply(params: Any, y: Array, s: Array, inputs: DenoiserInputs, config: DenoiserConfig,
-          rng: Optional[Array] = None) -> Array:
-  """Batched over the leading dim B of y (B, A, d_y) and inputs; s () or (B,).
-
-  Dropout is on when `rng` is given.
+          rng: Optional[Array] = None, anchor: Optional[Array] = None) -> Array:
+  """Batched over the leading dim B of y (B, A, d_y) and inputs; s () or (B,);
+  anchor (B, A, d_y) with `anchor_inputs`. Dropout is on when `rng` is given.
   """
   model = Denoiser(config, y.shape[-1])
   s = jnp.broadcast_to(jnp.asarray(s), y.shape[:1])
+  anchor = _anchors(y, anchor, config)
   if rng is None:
-    return jax.vmap(lambda yy, ss, ii: model.apply(params, yy, ss, ii))(y, s, inputs)
+    return jax.vmap(lambda yy, ss, ii, aa: model.apply(params, yy, ss, ii, True, aa))(y, s, inputs, anchor)
   keys = jax.random.split(rng, y.shape[0])
-  return jax.vmap(lambda yy, ss, ii, kk: model.apply(
-      params, yy, ss, ii, deterministic=False, rngs={"dropout": kk}))(y, s, inputs, keys)
+  return jax.vmap(lambda yy, ss, ii, kk, aa: model.apply(
+      params, yy, ss, ii, deterministic=False, anchor=aa, rngs={"dropout": kk}))(y, s, inputs, keys, anchor)

@@ -46,7 +46,9 @@ class Conditioning:
   (..., A, d) prior centre and scale
   (0 and 1 without the prior); speed: (..., A) signed speed at t (the initial
   state of every decoded rollout is [0, 0, 0, speed] in the agent frame);
-  proposals: (..., A, K, d) proposal latents; probs: (..., A, K).
+  proposals: (..., A, K, d) proposal latents; probs: (..., A, K); anchor:
+  (..., A, d) each agent's anchor proposal latent when the denoiser reads one
+  (`draw_anchor`), else None.
   """
   inputs: DenoiserInputs
   mu: Array
@@ -54,6 +56,7 @@ class Conditioning:
   speed: Array
   proposals: Array
   probs: Array
+  anchor: Optional[Array] = None
 
 
 def agent_speed(feats: SceneFeatures) -> Array:
@@ -113,6 +116,42 @@ def centre_on_top_mode(cond: Conditioning) -> Conditioning:
   return cond.replace(mu=top)
 
 
+def nearest_proposal(cond: Conditioning, y: Array) -> Array:
+  """(..., A) the index of each agent's proposal latent nearest y (..., A, d)."""
+  return jnp.argmin(jnp.sum(jnp.square(cond.proposals - y[..., None, :]), -1), -1)
+
+
+def with_anchor(cond: Conditioning, index: Array) -> Conditioning:
+  """cond with each agent's anchor, and prior centre, its proposal `index` (..., A)."""
+  anchor = jnp.take_along_axis(cond.proposals, index[..., None, None], axis=-2)[..., 0, :]
+  return cond.replace(anchor=anchor, mu=anchor)
+
+
+def draw_anchor(cond: Conditioning, cfg: Config, rng: Array, previous: Optional[Array] = None,
+                has: Optional[Array] = None, tau: float = 0.0, temperature: float = 1.0) -> Conditioning:
+  """The anchors of a sampling chain when the denoiser reads them (`anchor_inputs`;
+  else cond unchanged): each agent's proposal k drawn with probability p_k
+  (p_k^(1 / temperature), normalised; temperature 0: the most likely), or,
+  where it has a previous plan (previous (..., A, d), has (A,)), with probability
+  p_k exp(-|previous - y_k|^2 / 2 tau^2) (tau 0: the nearest proposal), so a
+  replan keeps the mode it committed to."""
+  if not cfg.diffusion.denoiser.anchor_inputs:
+    return cond
+  k_prior, k_kept = jax.random.split(rng)
+  logp = jnp.log(jnp.maximum(cond.probs, 1e-9))                                       # (..., A, K)
+  if temperature > 0:
+    index = jax.random.categorical(k_prior, logp / temperature)                        # (..., A)
+  else:
+    index = jnp.argmax(logp, -1)
+  if previous is not None:
+    kept = nearest_proposal(cond, previous)
+    if tau > 0:
+      dist2 = jnp.sum(jnp.square(cond.proposals - previous[..., None, :]), -1)
+      kept = jax.random.categorical(k_kept, logp - dist2 / (2.0 * tau ** 2))
+    index = jnp.where(has, kept, index)
+  return with_anchor(cond, index)
+
+
 def schedule_of(cfg: Config) -> diffusion.Schedule:
   d = cfg.diffusion
   return diffusion.linear_schedule(d.num_steps, d.beta_min, d.beta_max)
@@ -124,7 +163,7 @@ def _denoiser_fn(denoiser_params: Any, cond: Conditioning, d):
   it out of the step loop; what this saves is its repetition per sample, as
   cond.inputs with a batch of 1 are shared by all the samples of a scene."""
   ctx = denoiser_lib.context(denoiser_params, cond.inputs, d.denoiser, d.latent_dim)
-  return lambda y, s: denoiser_lib.apply_with_context(denoiser_params, y, s, ctx, d.denoiser)
+  return lambda y, s: denoiser_lib.apply_with_context(denoiser_params, y, s, ctx, d.denoiser, cond.anchor)
 
 
 def sample(denoiser_params: Any, cond: Conditioning, cfg: Config, rng: Array,
@@ -137,12 +176,16 @@ def sample(denoiser_params: Any, cond: Conditioning, cfg: Config, rng: Array,
   prior_init False starts from N(0, I) with unit noise scale (the no-prior
   variant); the denoiser still reads whatever tokens its config uses.
   init_noise (B, A, d): the unit noise of the initial sample (default: drawn from rng).
+  A denoiser with anchor inputs and no cond.anchor gets anchors drawn from the
+  proposal probabilities (`draw_anchor`).
   centre (B, A, d) and start_step (static): a warm start, the chain starts
   from `centre` noised to `start_step` (`diffusion.ddim_sample`).
   """
   d = cfg.diffusion
   num_steps = d.ddim_steps if num_steps is None else num_steps
   eta = d.eta if eta is None else eta
+  if cond.anchor is None:   # a denoiser with anchor inputs: drawn from the probabilities
+    cond = draw_anchor(cond, cfg, jax.random.fold_in(rng, 1))
   mu, sigma = (cond.mu, cond.sigma) if prior_init else diffusion.standard_prior(cond.mu.shape)
   mu = mu if centre is None else centre
 
@@ -163,6 +206,8 @@ def sample_cold_or_warm(denoiser_params: Any, cond: Conditioning, cfg: Config, r
   batch does not pay both chains)."""
   d = cfg.diffusion
   eta = d.eta if eta is None else eta
+  if cond.anchor is None:
+    cond = draw_anchor(cond, cfg, jax.random.fold_in(rng, 1))
   mu, sigma = (cond.mu, cond.sigma) if prior_init else diffusion.standard_prior(cond.mu.shape)
   mu = jnp.where(cold, mu, centre)
 

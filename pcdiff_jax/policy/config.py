@@ -31,6 +31,11 @@ class PolicyConfig:
     warm_step, warm_ddim_steps: the previous plan is noised to diffusion step warm_step (90: it
       keeps weight sqrt(abar_90) = 0.36, so most of the plan is re-drawn from the current scene)
       and denoised in warm_ddim_steps steps.
+    anchor_tau: with a denoiser that reads anchors (`DenoiserConfig.anchor_inputs`), a warm
+      replan draws each agent's anchor from p_k exp(-|previous - y_k|^2 / 2 tau^2) over its
+      proposals y_k (latent units), so it keeps the mode of its previous plan; 0: the nearest.
+      A cold plan draws it with probability p_k^(1 / anchor_temperature) (0: the most likely).
+      ("Ablation: anchor inputs"; the shipped model has no anchors, so both are inert.)
     temporal_ensemble: (m_accel, m_yaw_rate): the executed plan is m x the previous plans +
       (1 - m) x the new one per action channel (ACT's temporal ensembling), which averages away
       the sampling noise between consecutive plans; 0 turns a channel off.
@@ -81,6 +86,8 @@ class PolicyConfig:
   warm_start: bool = True
   warm_step: int = 90
   warm_ddim_steps: int = 1
+  anchor_tau: float = 0.0
+  anchor_temperature: float = 1.0
   temporal_ensemble: tuple[float, float] = (0.7, 0.0)
   select_samples: int = 8
   select_lookahead: int = 30
@@ -138,6 +145,9 @@ def validate(cfg: Config, policy: PolicyConfig) -> None:
   if not 1 <= policy.warm_ddim_steps <= policy.warm_step + 1:
     raise ValueError(f"warm_ddim_steps must be in [1, warm_step + 1 = {policy.warm_step + 1}], "
                      f"got {policy.warm_ddim_steps}")
+  if policy.anchor_tau < 0 or policy.anchor_temperature < 0:
+    raise ValueError(f"anchor_tau and anchor_temperature must be >= 0, got {policy.anchor_tau}, "
+                     f"{policy.anchor_temperature}")
   if not 1 <= policy.select_samples <= 64:
     raise ValueError(f"select_samples must be in [1, 64], got {policy.select_samples}")
   if not 1 <= policy.select_lookahead <= cfg.encoder.horizon:

@@ -71,13 +71,21 @@ def sample(models: Models, scene: Encoded, cfg: Config, policy: PolicyConfig, rn
   """(S, A, d) joint latent plans, guided by policy.guidance (`adversary`: the pursuer's object
   slot under adversarial guidance; road: the scene's road field). noise (O, d): per-object
   initial noise (consistent_noise), default drawn from rng. warm: a previous plan to start from
-  (warm_start), else the prior; the plan is cold when no modelled agent has a previous one."""
+  (warm_start), else the prior; the plan is cold when no modelled agent has a previous one.
+  A denoiser with anchor inputs gets them here (`planner.draw_anchor`)."""
   feats, cond = scene.feats, scene.cond
   init_noise = None if noise is None else noise[feats.agent_index][None]   # (1, A, d)
   if init_noise is not None and policy.select_samples > 1:
     # Sample k starts from the consistent noise rolled by k over the agents: another
     # Gaussian draw per agent, still a function of the rollout's noise (not of rng).
     init_noise = jnp.concatenate([jnp.roll(init_noise, k, axis=1) for k in range(policy.select_samples)])
+  k_anchor = jax.random.fold_in(rng, 1)   # rng itself untouched: models without anchors draw as before
+  previous = has = None
+  if warm is not None:
+    previous = latent.encode(warm.actions[feats.agent_index], models.stats)[None]   # (1, A, d)
+    has = warm.has[feats.agent_index] & feats.agent_valid
+  cond = planner.draw_anchor(cond, cfg, k_anchor, previous, has, policy.anchor_tau,
+                              policy.anchor_temperature)
   guide = _guide(models, scene.batched, cond, cfg, policy.guidance, jnp.asarray(adversary, jnp.int32), road)
   g = policy.guidance
   if warm is None:
@@ -85,8 +93,6 @@ def sample(models: Models, scene: Encoded, cfg: Config, policy: PolicyConfig, rn
     return planner.sample(models.denoiser, cond, cfg, rng, policy.ddim_steps, policy.eta,
                           prior_init=policy.prior_init, guide=guide, guide_steps=steps,
                           init_noise=init_noise)
-  previous = latent.encode(warm.actions[feats.agent_index], models.stats)[None]   # (1, A, d)
-  has = warm.has[feats.agent_index] & feats.agent_valid
   centre = warm_centres(cond, previous, has)
   return planner.sample_cold_or_warm(
       models.denoiser, cond, cfg, rng, ~jnp.any(has), centre, policy.ddim_steps,

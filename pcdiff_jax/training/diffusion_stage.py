@@ -133,7 +133,8 @@ def _noised(params, cond: Conditioning, y0, rng, cfg: Config, dropout_rng=None):
   s = jax.random.randint(k_s, (batch,), 0, sched.num_steps)
   eps = jax.random.normal(k_eps, y0.shape)
   y_s = diffusion.q_sample(y0, s[:, None], eps, cond.sigma, sched)
-  pred = denoiser_lib.apply(params, y_s, s, cond.inputs, cfg.diffusion.denoiser, rng=dropout_rng)
+  pred = denoiser_lib.apply(params, y_s, s, cond.inputs, cfg.diffusion.denoiser, rng=dropout_rng,
+                            anchor=cond.anchor)
   y0_hat = diffusion.predict_y0(y_s, s[:, None], pred, sched)
   return pred, cond.sigma * eps, y0_hat
 
@@ -144,6 +145,8 @@ def diffusion_loss(params, extra, batch: Example, rng, cfg: Config):
   cond = planner.condition(extra["encoder"], stats, batch.feats, cfg)
   y0, full = latent_targets(batch, stats, cond.speed, cfg)
   y0 = jnp.where(full[..., None], y0, cond.mu)
+  if cfg.diffusion.denoiser.anchor_inputs:   # the mode the logged future took
+    cond = planner.with_anchor(cond, planner.nearest_proposal(cond, y0))
   k_noise, k_drop = jax.random.split(rng)
   pred, target, y0_hat = _noised(params, cond, y0, k_noise, cfg, dropout_rng=k_drop)
   n = jnp.maximum(jnp.sum(full), 1)
