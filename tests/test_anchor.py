@@ -17,19 +17,20 @@ ANCHORED = dataclasses.replace(CFG, diffusion=dataclasses.replace(
     CFG.diffusion, denoiser=dataclasses.replace(CFG.diffusion.denoiser, anchor_inputs=True)))
 
 
-def _cond(models, cfg):
+@pytest.fixture(scope="module")
+def cond(tiny_models):
+  """The tiny models' conditioning of make_scene at t = 10 (batch 1)."""
   state = make_scene(num_steps=31).replace(timestep=jnp.int32(10))
-  feats = jax.tree_util.tree_map(lambda a: a[None], features.scene_features(state, cfg.features))
-  return jax.jit(lambda f: planner.condition(models.encoder, models.stats, f, cfg))(feats)
+  feats = jax.tree_util.tree_map(lambda a: a[None], features.scene_features(state, CFG.features))
+  return jax.jit(lambda f: planner.condition(tiny_models.encoder, tiny_models.stats, f, CFG))(feats)
 
 
-def test_a_model_trained_without_anchors_loads_with_them_and_then_reads_them(tiny_models):
+def test_a_model_trained_without_anchors_loads_with_them_and_then_reads_them(tiny_models, cond):
   """The zero-initialised projection leaves the output unchanged whatever the
   anchor; once trained (here: random weights) two anchors give two outputs,
   and a missing anchor is an error, not a silent zero."""
   params = denoiser.with_new_inputs(tiny_models.denoiser, ANCHORED.diffusion.denoiser)
   assert "in_anchor" in params["params"] and "in_anchor" not in tiny_models.denoiser["params"]
-  cond = _cond(tiny_models, CFG)
   y = cond.mu + 0.5
   dc, ac = CFG.diffusion.denoiser, ANCHORED.diffusion.denoiser
   run = jax.jit(lambda p, a: denoiser.apply(p, y, jnp.int32(40), cond.inputs, ac, anchor=a))
@@ -51,11 +52,10 @@ def test_a_model_trained_without_anchors_loads_with_them_and_then_reads_them(tin
   assert plans.shape == y.shape and bool(jnp.all(jnp.isfinite(plans)))
 
 
-def test_anchors_are_drawn_from_the_probabilities_or_kept_near_the_previous_plan(tiny_models):
+def test_anchors_are_drawn_from_the_probabilities_or_kept_near_the_previous_plan(cond):
   """Without a previous plan each agent's anchor is a proposal drawn by its
   probability (one-hot here: that proposal); with one, the proposal nearest
   it (tau 0), or the probabilities again for a wide tau. The prior centre moves to the anchor; a model without anchors is left as is."""
-  cond = _cond(tiny_models, CFG)
   num_agents, k = cond.probs.shape[-2:]
   choice = jnp.arange(num_agents) % k
   cond = cond.replace(probs=jax.nn.one_hot(choice, k)[None])
