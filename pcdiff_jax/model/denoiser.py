@@ -264,8 +264,8 @@ def with_new_inputs(params: Any, config: DenoiserConfig) -> Any:
     inner = {**inner, "in_lane": lane_context.zero_projection(config.d_model)}
   if config.anchor_inputs and "in_anchor" not in inner:
     d_y = inner["in_y"]["kernel"].shape[0]
-    inner = {**inner, "in_anchor": {"kernel": jnp.zeros((d_y, config.d_model)),
-                                    "bias": jnp.zeros((config.d_model,))}}
+    inner = {**inner, "in_anchor": {"kernel": jnp.zeros((d_y, config.d_model), jnp.float32),
+                                    "bias": jnp.zeros((config.d_model,), jnp.float32)}}
   return {**params, "params": inner}
 
 
@@ -276,24 +276,13 @@ def context(params: Any, inputs: DenoiserInputs, config: DenoiserConfig, latent_
   return jax.vmap(lambda ii: model.apply(params, ii, method=Denoiser.context))(inputs)
 
 
-def _anchors(y: Array, anchor: Optional[Array], config: DenoiserConfig) -> Array:
-  """The anchors to vmap over: `anchor` with `anchor_inputs` (required), else
-  zeros the model does not read."""
-  if not config.anchor_inputs:
-    return jnp.zeros_like(y)
-  if anchor is None:
-    raise ValueError(_NO_ANCHOR)
-  return anchor
-
-
 def apply_with_context(params: Any, y: Array, s: Array, ctx: DenoiserContext,
                        config: DenoiserConfig, anchor: Optional[Array] = None) -> Array:
   """`apply` (deterministic) from a precomputed context: y (B, A, d_y), s () or
   (B,); ctx batched over B, or over 1 to share one scene's context among B
-  samples of it; anchor (B, A, d_y) with `anchor_inputs`."""
+  samples of it; anchor (B, A, d_y), required with `anchor_inputs` (else unread)."""
   model = Denoiser(config, y.shape[-1])
   s = jnp.broadcast_to(jnp.asarray(s), y.shape[:1])
-  anchor = _anchors(y, anchor, config)
   one = lambda yy, ss, cc, aa: model.apply(params, yy, ss, cc, True, aa, method=Denoiser.denoise)
   if ctx.agent_valid.shape[0] == 1 and y.shape[0] > 1:
     shared = jax.tree_util.tree_map(lambda a: a[0], ctx)
@@ -304,11 +293,11 @@ def apply_with_context(params: Any, y: Array, s: Array, ctx: DenoiserContext,
 def apply(params: Any, y: Array, s: Array, inputs: DenoiserInputs, config: DenoiserConfig,
           rng: Optional[Array] = None, anchor: Optional[Array] = None) -> Array:
   """Batched over the leading dim B of y (B, A, d_y) and inputs; s () or (B,);
-  anchor (B, A, d_y) with `anchor_inputs`. Dropout is on when `rng` is given.
+  anchor (B, A, d_y), required with `anchor_inputs` (else unread). Dropout is on
+  when `rng` is given.
   """
   model = Denoiser(config, y.shape[-1])
   s = jnp.broadcast_to(jnp.asarray(s), y.shape[:1])
-  anchor = _anchors(y, anchor, config)
   if rng is None:
     return jax.vmap(lambda yy, ss, ii, aa: model.apply(params, yy, ss, ii, True, aa))(y, s, inputs, anchor)
   keys = jax.random.split(rng, y.shape[0])

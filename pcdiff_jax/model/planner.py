@@ -116,9 +116,14 @@ def centre_on_top_mode(cond: Conditioning) -> Conditioning:
   return cond.replace(mu=top)
 
 
+def _proposal_distances(cond: Conditioning, y: Array) -> Array:
+  """(..., A, K) squared distances from y (..., A, d) to each agent's proposal latents."""
+  return jnp.sum(jnp.square(cond.proposals - y[..., None, :]), -1)
+
+
 def nearest_proposal(cond: Conditioning, y: Array) -> Array:
   """(..., A) the index of each agent's proposal latent nearest y (..., A, d)."""
-  return jnp.argmin(jnp.sum(jnp.square(cond.proposals - y[..., None, :]), -1), -1)
+  return jnp.argmin(_proposal_distances(cond, y), -1)
 
 
 def with_anchor(cond: Conditioning, index: Array) -> Conditioning:
@@ -144,10 +149,9 @@ def draw_anchor(cond: Conditioning, cfg: Config, rng: Array, previous: Optional[
   else:
     index = jnp.argmax(logp, -1)
   if previous is not None:
-    kept = nearest_proposal(cond, previous)
-    if tau > 0:
-      dist2 = jnp.sum(jnp.square(cond.proposals - previous[..., None, :]), -1)
-      kept = jax.random.categorical(k_kept, logp - dist2 / (2.0 * tau ** 2))
+    dist2 = _proposal_distances(cond, previous)
+    kept = (jax.random.categorical(k_kept, logp - dist2 / (2.0 * tau ** 2)) if tau > 0
+            else jnp.argmin(dist2, -1))
     index = jnp.where(has, kept, index)
   return with_anchor(cond, index)
 
