@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+from typing import Optional
 
 
 def policy_item(text: str) -> tuple[str, object]:
@@ -32,10 +33,13 @@ def add_policy_flags(p: argparse.ArgumentParser) -> None:
                       "max_curvature=0.3 jerk_limit=1.5,5 (tuples comma-separated); the fields are listed below")
 
 
-def add_map_flags(p: argparse.ArgumentParser) -> None:
-  """A learned model's map crop at evaluation time (`EvalConfig.map_pieces`, `.map_anchor`)."""
-  p.add_argument("--map-pieces", type=int, default=None, metavar="N",
-                 help="learned methods: map pieces the encoder sees (default: the model's, 256); fewer is faster")
+def add_map_flags(p: argparse.ArgumentParser, pieces: Optional[int] = None, why: str = "") -> None:
+  """A learned model's map crop at evaluation time (`EvalConfig.map_pieces`, `.map_anchor`);
+  pieces: the default crop (None: the model's)."""
+  default = "the model's, 256" if pieces is None else f"{pieces}, or the model's if fewer{why}"
+  p.add_argument("--map-pieces", type=int, default=pieces, metavar="N",
+                 help=f"learned methods: at most this many map pieces for the encoder (default: {default}); "
+                      "fewer is faster")
   p.add_argument("--map-anchor", default=None, choices=("sdc", "agents"),
                  help="learned methods: keep the pieces nearest the SDC (the model's default) or nearest any "
                       "modelled agent")

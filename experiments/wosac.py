@@ -92,7 +92,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                       "32, 64, ... that hold its sim agents (the random draws of exports made before plans were "
                       "sized; slower on small scenes)")
   _args.add_policy_flags(p)
-  _args.add_map_flags(p)
+  _args.add_map_flags(p, wosac.EXPORT_MAP_PIECES, why=": WOSAC level with 256 at 1.2x the speed")
   p.add_argument("--guidance", default="none", choices=("none", "objective"),
                  help="pcdiff: objective guidance (map and collision costs) with its default weights")
   p.add_argument("--num-rollouts", type=int, default=submission.NUM_ROLLOUTS,

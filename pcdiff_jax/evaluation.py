@@ -67,9 +67,9 @@ class EvalConfig:
   so every evaluated agent is controlled and none follows its log; the
   attention layers take any agent count, at a cost that grows with it
   (docs/BENCHMARKS.md). map_pieces, map_anchor: the learned model's map crop
-  (`FeaturesConfig.max_polylines`, `.map_anchor`; None keeps the trained
-  model's): fewer pieces is a cheaper encoder, at a cost in score measured in
-  docs/BENCHMARKS.md, "WOSAC at WOMD scale"."""
+  (`FeaturesConfig.max_polylines`, never above the trained model's; `.map_anchor`;
+  None keeps the trained model's): fewer pieces is a cheaper encoder, at a cost in
+  score measured in docs/BENCHMARKS.md, "WOSAC at WOMD scale"."""
   method: str = "cv"
   checkpoint: Optional[str] = None
   ego: str = "log"
@@ -142,12 +142,14 @@ def _method_actor(cfg: EvalConfig) -> tuple[Actor, Any]:
 
 def run_config(model_cfg, cfg: EvalConfig):
   """The learned model's config as `cfg` runs it: room for every evaluated
-  agent (`with_agent_cap`) and the map crop of `cfg.map_pieces` / `.map_anchor`."""
+  agent (`with_agent_cap`) and the map crop of `cfg.map_pieces` (at most the
+  pieces it was trained with) / `.map_anchor`."""
   model_cfg = with_agent_cap(model_cfg, cfg.metrics)
-  crop = {name: value for name, value in (("max_polylines", cfg.map_pieces), ("map_anchor", cfg.map_anchor))
-          if value is not None}
   if cfg.map_pieces is not None and cfg.map_pieces < 1:
     raise ValueError(f"map_pieces must be >= 1, got {cfg.map_pieces}")
+  pieces = None if cfg.map_pieces is None else min(cfg.map_pieces, model_cfg.features.max_polylines)
+  crop = {name: value for name, value in (("max_polylines", pieces), ("map_anchor", cfg.map_anchor))
+          if value is not None}
   if cfg.map_anchor not in (None,) + features_lib.MAP_ANCHORS:
     raise ValueError(f"unknown map_anchor {cfg.map_anchor!r}; choose one of {list(features_lib.MAP_ANCHORS)}")
   return dataclasses.replace(model_cfg, features=dataclasses.replace(model_cfg.features, **crop))

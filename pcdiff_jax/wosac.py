@@ -93,6 +93,11 @@ class WosacConfig:
 
 
 CPU_ROLLOUTS_PER_CALL = 4
+# The export's map crop for a learned method (`experiments.wosac --map-pieces`): the 192 pieces
+# nearest the SDC score as the model's 256 do on the 36 real val scenes (0.701 / 0.750 against
+# 0.699 / 0.751 on the clean-heading / degree-stored ones) at 1.2x the export's throughput
+# (docs/BENCHMARKS.md, "WOSAC export: the model's map crop against 192 pieces").
+EXPORT_MAP_PIECES = 192
 
 
 def default_rollouts_per_call(num_rollouts: int, platform: Optional[str] = None) -> int:

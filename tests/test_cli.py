@@ -100,22 +100,26 @@ def test_wosac_takes_the_same_policy_options(tmp_path, capsys):
 def test_the_map_crop_flags_reach_the_eval_config(tmp_path, capsys):
   from experiments import wosac
   from pcdiff_jax import evaluation
+  from pcdiff_jax import wosac as wosac_lib
   from pcdiff_jax.config import get_config
   for cli in (wosac, rollout):
     out = str(tmp_path / ("s.binproto" if cli is wosac else "o"))
     common = ["--scenarios", "x", "--out", out, "--method", "pcdiff", "--checkpoint", "c"]
     args = cli.parse_args(common + ["--map-pieces", "96", "--map-anchor", "agents"])
     assert args.map_crop == {"map_pieces": 96, "map_anchor": "agents"}
-    assert cli.parse_args(common).map_crop == {"map_pieces": None, "map_anchor": None}
+    default = wosac_lib.EXPORT_MAP_PIECES if cli is wosac else None   # the export crops by default
+    assert cli.parse_args(common).map_crop == {"map_pieces": default, "map_anchor": None}
     with pytest.raises(SystemExit) as err:
       cli.parse_args(common + ["--map-pieces", "0"])
     assert err.value.code == 2 and "--map-pieces must be >= 1" in capsys.readouterr().err
   model_cfg = get_config("tiny")
-  run = evaluation.run_config(model_cfg, evaluation.EvalConfig(map_pieces=96, map_anchor="agents"))
-  assert (run.features.max_polylines, run.features.map_anchor) == (96, "agents")
+  run = evaluation.run_config(model_cfg, evaluation.EvalConfig(map_pieces=24, map_anchor="agents"))
+  assert (run.features.max_polylines, run.features.map_anchor) == (24, "agents")
   assert run.features.max_agents == evaluation.EvalConfig().metrics.max_reactive_agents + 1
   kept = evaluation.run_config(model_cfg, evaluation.EvalConfig()).features
   assert (kept.max_polylines, kept.map_anchor) == (model_cfg.features.max_polylines, "sdc")
+  more = evaluation.run_config(model_cfg, evaluation.EvalConfig(map_pieces=10 ** 6)).features
+  assert more.max_polylines == model_cfg.features.max_polylines   # never more than it was trained with
   with pytest.raises(ValueError, match="map_anchor"):
     evaluation.run_config(model_cfg, evaluation.EvalConfig(map_anchor="ego"))
 

@@ -4,24 +4,24 @@ tests/data/policy_rollouts.npz holds short closed-loop rollouts (and one statele
 It was first recorded with the single-module policy the package replaced (commit e1ec5d4), which
 the package matched bit for bit; it was re-recorded when the jerk limit's reference became
 the policy's own executed acceleration (the log's trend over a second at the first step) and the
-kinematic speed the velocity along the heading, and again when the encoder's attention applied
-its key and value projections once per receiver instead of per edge (float rounding; CHANGELOG.md). Record it with
-`PCDIFF_TEST_XLA_DEFAULTS=1 PYTHONPATH=.:tests python tests/test_policy_package.py`, and
-only for a change meant to move the numbers.
+kinematic speed the velocity along the heading, when the encoder's attention applied its key and
+value projections once per receiver instead of per edge (float rounding), and when the tests'
+XLA settings (conftest.py) replaced XLA's defaults for it (CHANGELOG.md). Record it with
+`PYTHONPATH=.:tests python tests/test_policy_package.py`, and only for a change meant to move
+the numbers.
 """
 from __future__ import annotations
 
 import os
 import pathlib
 import platform
-import subprocess
 import sys
 
 import jax
 import numpy as np
 import pytest
 
-from conftest import DEFAULT_XLA_FLAGS, XLA_DEFAULTS_ENV, build_tiny_models, make_scene
+from conftest import build_tiny_models, make_scene
 from pcdiff_jax import policy
 from pcdiff_jax.config import get_config
 from pcdiff_jax.model import guidance as guidance_lib
@@ -77,7 +77,8 @@ def _outputs(models) -> dict[str, np.ndarray]:
 
 
 def machine() -> str:
-  """What decides the CPU program's last bits: the jax and jaxlib versions and the CPU's vector units."""
+  """What decides the CPU program's last bits: the jax and jaxlib versions, the CPU's vector units
+  and the XLA flags (conftest.py's, unless XLA_DEFAULTS_ENV is set)."""
   from importlib import metadata
   flags = set()
   if pathlib.Path("/proc/cpuinfo").exists():
@@ -85,27 +86,20 @@ def machine() -> str:
       if line.startswith("flags"):
         flags = set(line.split(":", 1)[1].split()) & {"avx", "avx2", "fma", "avx512f", "avx512_bf16", "amx_tile"}
         break
-  return f"jax {metadata.version('jax')} jaxlib {metadata.version('jaxlib')} {platform.machine()} {' '.join(sorted(flags))}"
+  return (f"jax {metadata.version('jax')} jaxlib {metadata.version('jaxlib')} {platform.machine()} "
+          f"{' '.join(sorted(flags))} XLA_FLAGS={' '.join(sorted(os.environ.get('XLA_FLAGS', '').split()))}")
 
 
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="the reference was recorded on CPU")
-def test_rollouts_match_the_recorded_policy(tmp_path):
-  """Bit for bit where jax, jaxlib and the CPU's vector units are those of the recording; elsewhere
-  XLA may compile other instructions (FMA, vector widths), so to 1e-3 (float32 rounding over 5 steps).
-  The rollouts run in a fresh interpreter with XLA's default code generation (conftest.py's
-  faster compile settings round differently)."""
+def test_rollouts_match_the_recorded_policy(tiny_models):
+  """Bit for bit where jax, jaxlib, the CPU's vector units and the XLA flags are those of the
+  recording; elsewhere XLA may compile other instructions (FMA, vector widths), so to 1e-3
+  (float32 rounding over 5 steps)."""
   if not REFERENCE.exists():
     pytest.skip(f"{REFERENCE} not recorded: run this file's __main__")
   reference = dict(np.load(REFERENCE))
   recorded_on = str(reference.pop("machine"))
-  out = tmp_path / "got.npz"
-  here = pathlib.Path(__file__).parent
-  env = dict(os.environ, XLA_FLAGS=DEFAULT_XLA_FLAGS, **{XLA_DEFAULTS_ENV: "1"},
-             PYTHONPATH=os.pathsep.join([str(here.parent), str(here), os.environ.get("PYTHONPATH", "")]))
-  run = subprocess.run([sys.executable, __file__, str(out)], env=env, capture_output=True, text=True, timeout=900)
-  assert run.returncode == 0, run.stderr[-3000:]
-  got = dict(np.load(out))
-  ran_on = str(got.pop("machine"))
+  got, ran_on = _outputs(tiny_models), machine()
   assert sorted(got) == sorted(reference)
   for key, want in reference.items():
     if recorded_on == ran_on:
@@ -118,10 +112,7 @@ def test_rollouts_match_the_recorded_policy(tmp_path):
       np.testing.assert_allclose(got[key], want, rtol=tol, atol=tol, err_msg=f"{key} (recorded on {recorded_on})")
 
 
-if __name__ == "__main__":   # [PATH]: write the outputs there (the test's run), else record REFERENCE
-  if os.environ.get(XLA_DEFAULTS_ENV) != "1":
-    sys.exit(f"set {XLA_DEFAULTS_ENV}=1: the reference is recorded with XLA's default code generation")
-  path = pathlib.Path(sys.argv[1]) if len(sys.argv) > 1 else REFERENCE
-  path.parent.mkdir(exist_ok=True)
-  np.savez_compressed(path, machine=np.asarray(machine()), **_outputs(build_tiny_models()))
-  print(f"wrote {path} ({path.stat().st_size} bytes)")
+if __name__ == "__main__":   # record REFERENCE with conftest.py's XLA flags (importing it sets them)
+  REFERENCE.parent.mkdir(exist_ok=True)
+  np.savez_compressed(REFERENCE, machine=np.asarray(machine()), **_outputs(build_tiny_models()))
+  print(f"wrote {REFERENCE} ({REFERENCE.stat().st_size} bytes)")
