@@ -109,7 +109,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                       "docs/BENCHMARKS.md); the rollouts do not depend on N")
   p.add_argument("--part", type=_shard, default=None, help=argparse.SUPPRESS)   # one job of --jobs
   p.add_argument("--max-scenarios", type=int, default=None, help="only the first N scenarios (a test)")
-  p.add_argument("--overwrite", action="store_true", help="replace an existing submission file")
+  p.add_argument("--overwrite", action="store_true",
+                 help="replace an existing submission file, and start afresh where an earlier run of it was "
+                      "stopped (by default the same command goes on from the scenarios that run wrote)")
   p.add_argument("--seed", type=int, default=0)
   p.add_argument("--no-progress", action="store_true")
   m = p.add_argument_group("submission metadata (sim_agents_submission.proto)")
@@ -232,6 +234,10 @@ def _ceiling(args) -> int:
 
 
 def _interrupt(signum, frame):
+  # One stop: a second signal (Ctrl-C reaches the jobs' whole process group, then the parent's
+  # SIGTERM) must not break off the writing of what is kept.
+  signal.signal(signal.SIGTERM, signal.SIG_IGN)
+  signal.signal(signal.SIGINT, signal.SIG_IGN)
   raise KeyboardInterrupt
 
 
@@ -246,6 +252,26 @@ def _job_cpus(count: int) -> list[set]:
   if count >= len(cpus):
     return [{cpus[j % len(cpus)]} for j in range(count)]
   return [set(cpus[j::count]) for j in range(count)]
+
+
+def _follow_jobs(procs, target: str, args) -> None:
+  """Shows the jobs' progress (scenarios written, read from their parts every few seconds) until
+  they end: the jobs themselves run without a progress bar."""
+  import time
+  from tqdm.auto import tqdm
+  from pcdiff_jax.data import tfrecord
+  if args.no_progress:
+    for proc in procs:
+      proc.wait()
+    return
+  total = sum(tfrecord.count_records(f) for f in wosac.select_files(args.scenarios, args.shard))
+  total = min(total, args.max_scenarios) if args.max_scenarios else total
+  parts = [wosac.part_path(target, j, args.jobs) for j in range(args.jobs)]
+  with tqdm(total=total, desc=f"wosac {args.method} ({args.jobs} jobs)", unit="scenario") as bar:
+    while any(proc.poll() is None for proc in procs):
+      time.sleep(5)
+      done = sum(max(map(submission.count_scenarios, (p, p + ".tmp"))) for p in parts)
+      bar.update(done - bar.n)
 
 
 def _export_in_jobs(args, argv: list[str]) -> int:
@@ -266,6 +292,7 @@ def _export_in_jobs(args, argv: list[str]) -> int:
       procs.append(subprocess.Popen(
           [sys.executable, "-m", "experiments.wosac", *argv, "--part", f"{j}/{args.jobs}", "--no-progress"],
           stdout=subprocess.PIPE, text=True, env=env))
+    _follow_jobs(procs, target, args)
     outputs = [proc.communicate()[0] for proc in procs]
   except KeyboardInterrupt:
     for proc in procs:
@@ -273,14 +300,15 @@ def _export_in_jobs(args, argv: list[str]) -> int:
     for proc in procs:
       proc.wait()
     kept = [wosac.part_path(target, j, args.jobs) for j in range(args.jobs)]
-    kept = [f for f in kept + [f"{f}.partial" for f in kept] if os.path.exists(f)]
-    print(f"warning: stopped; the jobs' scenarios so far are kept in {kept or 'no file'} (not merged)",
-          file=sys.stderr)
+    kept = [f for f in kept + [f"{f}{s}" for f in kept for s in (".partial", ".tmp")] if os.path.exists(f)]
+    print(f"warning: stopped; the jobs' scenarios so far are kept in {kept or 'no file'}: the same command "
+          "goes on from them", file=sys.stderr)
     return 130
   failed = [j for j, proc in enumerate(procs) if proc.returncode != 0]
   if failed:
-    print(f"error: job(s) {failed} of {args.jobs} failed (their messages above); the other jobs' parts are "
-          f"kept as {wosac.part_path(target, 'J', args.jobs)}, not merged into {target}", file=sys.stderr)
+    print(f"error: job(s) {failed} of {args.jobs} failed (their messages above); what every job wrote is kept "
+          f"as {wosac.part_path(target, 'J', args.jobs)}[.partial], not merged into {target}: the same command "
+          "goes on from them", file=sys.stderr)
     return 2
   summaries = [json.loads(next(line for line in out.splitlines()[::-1] if line.startswith("{"))) for out in outputs]
   count, metadata = wosac.merge_parts(target, args.jobs)
@@ -301,6 +329,15 @@ def _export_in_jobs(args, argv: list[str]) -> int:
 
 
 def main(argv=None) -> int:
+  handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
+  try:
+    return _main(argv)
+  finally:   # in a caller's process (tests, a notebook), its own handlers again
+    for sig, handler in handlers.items():
+      signal.signal(sig, handler)
+
+
+def _main(argv=None) -> int:
   argv = sys.argv[1:] if argv is None else list(argv)
   args = parse_args(argv)
   _args.setup_logging()
@@ -324,6 +361,7 @@ def main(argv=None) -> int:
       print(f"{target} exists: nothing to do (--overwrite to write it again)", file=sys.stderr)
       return 0
     signal.signal(signal.SIGTERM, _interrupt)   # `timeout`, a batch system: keep what is done
+    signal.signal(signal.SIGINT, _interrupt)
     if args.jobs > 1 and args.part is None:
       return _export_in_jobs(args, argv)
     speaks = args.part is None or args.part[0] == 0   # of --jobs, the first job alone warns
@@ -337,7 +375,8 @@ def main(argv=None) -> int:
       print("warning: --replan-every > 1 is not closed loop at 10 Hz (the challenge's rule); the submission "
             "does not acknowledge it", file=sys.stderr)
     summary = wosac.export(args.scenarios, args.out, cfg, _metadata(args, cfg), shard=args.shard,
-                           max_scenarios=args.max_scenarios, progress=not args.no_progress, part=args.part)
+                           max_scenarios=args.max_scenarios, progress=not args.no_progress, part=args.part,
+                           resume=not args.overwrite)
   except wosac.Interrupted as err:
     print(f"warning: {err}", file=sys.stderr)
     return 130

@@ -405,16 +405,85 @@ class Interrupted(Exception):
 
   def __init__(self, path: str, count: int):
     super().__init__(f"interrupted after {count} scenarios: they are in {path} (a valid submission of "
-                     "those scenarios; rename it to check or score it)")
+                     "those scenarios; the same command goes on from it, or rename it to check or score it)")
     self.path, self.count = path, count
+
+
+# What an export of `path` leaves while it is not finished: the stream being written, an
+# interrupted run's scenarios, the copy a resuming run reads from.
+_UNFINISHED = (".tmp", ".partial", ".resume")
+
+
+def run_record_path(path: str) -> str:
+  """The settings of the export that writes `path`, kept until it is finished, so that only
+  the same export resumes from what an earlier run of it left."""
+  return f"{path}.run.json"
+
+
+def _settings_mismatch(path: str, settings: dict) -> Optional[str]:
+  """None when `run_record_path(path)` holds these settings, else what differs."""
+  import json
+  try:
+    with open(run_record_path(path)) as f:
+      old = json.load(f)
+  except (OSError, ValueError):
+    return f"{run_record_path(path)} is missing or unreadable"
+  diff = [k for k in settings if old.get(k) != settings[k]]
+  return f"{', '.join(diff)} differ" if diff else None
+
+
+def _resume_writer(path: str, settings: dict, metadata: submission.Metadata, resume: bool,
+                   finished_too: bool) -> tuple[submission.SubmissionWriter, int]:
+  """A writer of `path` that holds what an earlier, unfinished run of the same export wrote
+  (its `.partial`, `.tmp` after a kill, and with finished_too `path` itself: a part finished
+  before another job failed), and how many agents those hold.
+
+  The largest of those files is a superset of the others (every run starts from it), so it
+  is kept and the rest removed; it is copied record by record (a record cut short by a kill
+  is dropped) and removed once copied. Settings other than the earlier run's are a
+  ValueError; resume=False (`--overwrite`) starts again."""
+  import json
+  found = [f for f in [path] * finished_too + [path + s for s in _UNFINISHED] if os.path.exists(f)]
+  if found and not resume:
+    for f in found:
+      os.remove(f)
+    found = []
+  if found:
+    why = _settings_mismatch(path, settings)
+    if why is not None:
+      raise ValueError(f"{found[0]} is left by an export with other settings ({why}): run that export again "
+                       "to finish it, or pass --overwrite to start this one afresh")
+  with open(run_record_path(path), "w") as f:
+    json.dump(settings, f, indent=1)
+  source, agents = path + ".resume", 0
+  if found:
+    best = max(found, key=submission.count_scenarios)
+    if best != source:
+      os.replace(best, source)
+    for f in found:
+      if f not in (best, source) and os.path.exists(f):
+        os.remove(f)
+  writer = submission.SubmissionWriter(path, metadata)
+  if os.path.exists(source):
+    from pcdiff_jax.data import waymo_protos as pb
+    for payload in submission.iter_scenario_records(source):
+      rollouts = pb.ScenarioRollouts.FromString(payload)
+      writer.add_serialized(payload, rollouts.scenario_id)
+      agents += len(rollouts.joint_scenes[0].simulated_trajectories) if rollouts.joint_scenes else 0
+    writer.flush()
+    os.remove(source)
+  return writer, agents
 
 
 def export(scenarios, out: str, cfg: WosacConfig, metadata: submission.Metadata,
            shard: Optional[tuple[int, int]] = None, max_scenarios: Optional[int] = None,
-           progress: bool = True, part: Optional[tuple[int, int]] = None) -> dict:
+           progress: bool = True, part: Optional[tuple[int, int]] = None, resume: bool = True) -> dict:
   """Simulates every scenario of `scenarios` (or the shard's files; with part (j, n), the
   j-th of every n of their scenarios, written to `part_path`) and
-  writes the submission file; returns a summary (path, counts, mean and
+  writes the submission file. An earlier run of the same export that was stopped or killed
+  is resumed: its scenarios are kept, the rest simulated (the same file as one uninterrupted
+  run: a scenario's rollouts depend on its id only); resume=False starts again. Returns
+  a summary (path, counts, `resumed_scenarios`, mean and
   median seconds per scenario with the first, compiling one left out: a
   later scene in a new object bucket still compiles its own program; and
   `steady_seconds_per_scenario`, the mean over the scenes that compiled
@@ -429,15 +498,24 @@ def export(scenarios, out: str, cfg: WosacConfig, metadata: submission.Metadata,
     metadata = dataclasses.replace(metadata, num_model_parameters=submission.format_num_parameters(
         num_parameters(simulator.params)))
   from tqdm.auto import tqdm
-  seconds, compiled, lost, agents, fallback = [], [], 0, 0, 0
+  seconds, compiled, lost, fallback = [], [], 0, 0
   cap = cfg.eval.metrics.max_reactive_agents + 1   # the learned agents and the SDC (method or IDM ego)
   items = womd.iterate(files, with_meta=True, history_only=cfg.eval.method != LOG_REPLAY, max_num_objects=cfg.max_objects,
                        max_scenarios=max_scenarios, to_jax=False)
   if part is not None:
     items = itertools.islice(items, part[0], None, part[1])
-  writer = submission.SubmissionWriter(path, metadata)
+  settings = {"config": repr(cfg), "files": [os.path.abspath(f) for f in files], "part": list(part or []),
+              "max_scenarios": max_scenarios}
+  writer, agents = _resume_writer(path, settings, metadata, resume, finished_too=part is not None)
+  resumed = writer.count
   try:
-    for state, meta in tqdm(items, desc=f"wosac {cfg.eval.method}", unit="scenario", disable=not progress):
+    for index, (state, meta) in enumerate(tqdm(items, desc=f"wosac {cfg.eval.method}", unit="scenario",
+                                               disable=not progress)):
+      if index < resumed:   # written by an earlier run: the same scenarios, in the same order
+        if meta.scenario_id != writer.scenario_ids[index]:
+          raise ValueError(f"{path}: scenario {index} of the earlier run is {writer.scenario_ids[index]}, "
+                           f"the input's is {meta.scenario_id}: pass --overwrite to start again")
+        continue
       t0 = time.perf_counter()
       result = simulator.simulate(state, meta.scenario_id)
       writer.add(submission.scenario_rollouts(meta.scenario_id, result.object_ids, result.trajectories))
@@ -452,17 +530,25 @@ def export(scenarios, out: str, cfg: WosacConfig, metadata: submission.Metadata,
   except KeyboardInterrupt:
     if writer.count == 0:
       writer.abort()
+      os.remove(run_record_path(path))
       raise
     raise Interrupted(writer.close_partial(), writer.count) from None
   except BaseException:
-    writer.abort()
+    if writer.count == 0:
+      writer.abort()
+      os.remove(run_record_path(path))
+    else:   # nothing written is lost: the same command goes on from it
+      log.warning("the %d scenarios written are kept in %s", writer.count, writer.close_partial())
     raise
   writer.close()
+  if part is None:   # a finished part keeps its settings until the parts are merged
+    os.remove(run_record_path(path))
   if lost:
     log.warning("%d sim-agent steps were invalid in the simulation and were held at the last valid pose", lost)
   timed = seconds[1:] or seconds or [float("nan")]
   steady = [t for t, c in zip(seconds, compiled) if not c]
-  return {"path": path, "num_scenarios": writer.count, "sim_agents": agents, "fallback_agents": fallback,
+  return {"path": path, "num_scenarios": writer.count, "resumed_scenarios": resumed,
+          "sim_agents": agents, "fallback_agents": fallback,
           "lost_steps": lost, "num_rollouts": cfg.num_rollouts,
           "seconds_per_scenario": float(np.mean(timed)), "median_seconds_per_scenario": float(np.median(timed)),
           "first_scenario_seconds": seconds[0] if seconds else None, "compiling_scenarios": int(sum(compiled)),
@@ -491,6 +577,8 @@ def merge_parts(path: str, count: int):
           writer.add(rollouts[i])
   for j in range(count):
     os.remove(part_path(path, j, count))
+    if os.path.exists(run_record_path(part_path(path, j, count))):
+      os.remove(run_record_path(part_path(path, j, count)))
   return writer.count, head
 
 

@@ -57,6 +57,7 @@ def test_writers_give_the_same_bytes(real_state, tmp_path, monkeypatch, tensorfl
   assert len(list(tensorflow.data.TFRecordDataset(str(files["python"])))) == 2
   assert len(list(tfrecord.read_records(str(files["python"])))) == 2
   assert len(list(tfrecord.read_records(str(files["python"]), start=1))) == 1
+  assert tfrecord.count_records(str(files["python"])) == 2
 
 
 def test_parse_example_missing_and_mismatched_features():

@@ -506,35 +506,89 @@ def test_the_fallback_is_left_out_only_where_it_drives_nobody(tiny_models):
     assert np.allclose(np.asarray(shared.sim_trajectory.x), runs[False], atol=1e-3)
 
 
-def test_an_interrupted_export_keeps_the_scenarios_it_finished(womd_path, tmp_path, monkeypatch, capsys):
-  """Ctrl-C or SIGTERM (`timeout`, a batch system) after the first scenario:
-  exit 130, no final file, and the finished scenario in a valid `.partial`."""
-  from experiments import wosac as cli
-  state, meta = womd.load(womd_path, to_jax=False)
-  scenarios = str(tmp_path / "scenario.tfrecord")
-  womd.write(scenarios, [(state, "first"), (state, "second")], record_format="scenario")
-  simulate, calls = wosac.Simulator.simulate, []
+def _simulate_stopping_at(number: int, calls: list):
+  """`Simulator.simulate` that records each scenario id in `calls` and raises
+  KeyboardInterrupt (Ctrl-C) at call `number` (0: never)."""
+  simulate = wosac.Simulator.simulate
 
-  def stop_at_the_second(self, state, scenario_id):
+  def run(self, state, scenario_id):
     calls.append(scenario_id)
-    if len(calls) == 2:
+    if len(calls) == number:
       raise KeyboardInterrupt
     return simulate(self, state, scenario_id)
+  return run
 
-  monkeypatch.setattr(wosac.Simulator, "simulate", stop_at_the_second)
-  out = str(tmp_path / "sub.binproto")
-  assert cli.main(["--scenarios", scenarios, "--method", "cv", "--out", out, "--num-rollouts", "2",
-                   "--no-progress"]) == 130
+
+def test_a_stopped_or_killed_export_goes_on_from_what_it_wrote(womd_path, tmp_path, monkeypatch, capsys):
+  """Ctrl-C or SIGTERM (`timeout`, a batch system) after the first scenario: exit 130, no final
+  file, and the finished scenario in a valid `.partial`. The same command after a stop or a kill
+  (a `.tmp` whose last record is cut short) simulates only the scenarios left and writes the
+  file one uninterrupted run writes; other settings are refused (exit 2) until --overwrite
+  starts afresh; an interrupt in the first scenario goes on and leaves no file behind."""
+  from experiments import wosac as cli
+  state, _ = womd.load(womd_path, to_jax=False)
+  scenarios = str(tmp_path / "scenario.tfrecord")
+  womd.write(scenarios, [(state, f"scene-{i}") for i in range(3)], record_format="scenario")
+  common = ["--scenarios", scenarios, "--method", "cv", "--num-rollouts", "2", "--no-progress"]
+  whole, out = str(tmp_path / "whole.binproto"), str(tmp_path / "sub.binproto")
+  assert cli.main(common + ["--out", whole]) == 0
+  calls = []
+  with monkeypatch.context() as m:
+    m.setattr(wosac.Simulator, "simulate", _simulate_stopping_at(2, calls))
+    assert cli.main(common + ["--out", out]) == 130
   assert "interrupted after 1 scenarios" in capsys.readouterr().err
   assert not os.path.exists(out) and not os.path.exists(out + ".tmp")
   sub = submission.read(out + ".partial")
-  assert [r.scenario_id for r in sub.scenario_rollouts] == ["first"] and sub.unique_method_name == "pcdiff_jax-cv"
-  # Interrupted in the first scenario: the interrupt goes on, and no file is left behind.
-  os.remove(out + ".partial")
-  calls[:] = ["so that the next call is the second"]
-  with pytest.raises(KeyboardInterrupt):
-    cli.main(["--scenarios", scenarios, "--method", "cv", "--out", out, "--num-rollouts", "2", "--no-progress"])
-  assert sorted(os.listdir(tmp_path)) == ["scenario.tfrecord"]
+  assert [r.scenario_id for r in sub.scenario_rollouts] == ["scene-0"] and sub.unique_method_name == "pcdiff_jax-cv"
+  settings = open(wosac.run_record_path(out)).read()
+  assert cli.main(common + ["--out", out, "--seed", "1"]) == 2
+  assert "other settings (config differ)" in capsys.readouterr().err
+  calls[:] = []
+  with monkeypatch.context() as m:
+    m.setattr(wosac.Simulator, "simulate", _simulate_stopping_at(0, calls))
+    assert cli.main(common + ["--out", out]) == 0
+  assert calls == ["scene-1", "scene-2"] and '"resumed_scenarios": 1' in capsys.readouterr().out
+  assert (tmp_path / "sub.binproto").read_bytes() == (tmp_path / "whole.binproto").read_bytes()
+  # Killed while the third scenario was written: its record is cut short and simulated again.
+  records = list(submission.iter_scenario_records(whole))
+  torn = b"".join(submission._field_bytes(1, r) for r in records[:2]) + submission._field_bytes(1, records[2])[:999]
+  os.remove(out)
+  (tmp_path / "sub.binproto.run.json").write_text(settings)   # as the killed run left it
+  (tmp_path / "sub.binproto.tmp").write_bytes(torn)
+  assert submission.count_scenarios(out + ".tmp") == 2
+  calls[:] = []
+  with monkeypatch.context() as m:
+    m.setattr(wosac.Simulator, "simulate", _simulate_stopping_at(0, calls))
+    assert cli.main(common + ["--out", out]) == 0 and calls == ["scene-2"]
+  assert (tmp_path / "sub.binproto").read_bytes() == (tmp_path / "whole.binproto").read_bytes()
+  assert sorted(os.listdir(tmp_path)) == ["scenario.tfrecord", "sub.binproto", "whole.binproto"]
+  # Another export's leftovers: refused, then --overwrite starts afresh (stopped in its first scenario).
+  (tmp_path / "sub.binproto.run.json").write_text(settings.replace("cv", "idm"))
+  (tmp_path / "sub.binproto.tmp").write_bytes(torn)
+  os.remove(out)
+  assert cli.main(common + ["--out", out]) == 2
+  calls[:] = []
+  with monkeypatch.context() as m, pytest.raises(KeyboardInterrupt):
+    m.setattr(wosac.Simulator, "simulate", _simulate_stopping_at(1, calls))
+    cli.main(common + ["--out", out, "--overwrite"])
+  assert sorted(os.listdir(tmp_path)) == ["scenario.tfrecord", "whole.binproto"]
+
+
+def test_scenario_records_are_read_from_whole_files_and_cut_streams(tmp_path):
+  path = str(tmp_path / "sub.binproto")
+  traj = np.zeros((2, 1, 80, 4), np.float32)
+  with submission.SubmissionWriter(path, submission.Metadata(unique_method_name="m")) as writer:
+    for sid in ("a", "b"):
+      writer.add(submission.scenario_rollouts(sid, [5], traj))
+  raw = open(path, "rb").read()
+  assert [pb.ScenarioRollouts.FromString(r).scenario_id for r in submission.iter_scenario_records(path)] == ["a", "b"]
+  for cut, count in ((len(raw), 2), (len(raw) // 2 + 100, 1), (1, 0)):
+    (tmp_path / "cut").write_bytes(raw[:cut])
+    assert submission.count_scenarios(str(tmp_path / "cut")) == count
+  assert submission.count_scenarios(str(tmp_path / "none")) == 0
+  (tmp_path / "bad").write_bytes(b"\x0f\x00")
+  with pytest.raises(ValueError, match="bad: not a SimAgentsChallengeSubmission stream"):
+    submission.count_scenarios(str(tmp_path / "bad"))
 
 
 def test_parts_merge_in_the_inputs_scenario_order(tmp_path):

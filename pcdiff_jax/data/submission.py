@@ -19,7 +19,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import re
-from typing import Iterable, Optional, Sequence
+from typing import Iterable, Iterator, Optional, Sequence
 
 import numpy as np
 
@@ -107,6 +107,60 @@ def _field_bytes(number: int, payload: bytes) -> bytes:
   return bytes(head) + payload
 
 
+def _read_varint(f) -> Optional[int]:
+  """The next varint of a binary stream; None at its end or inside a cut-short varint."""
+  value = shift = 0
+  while True:
+    byte = f.read(1)
+    if not byte:
+      return None
+    value |= (byte[0] & 0x7F) << shift
+    if byte[0] < 0x80:
+      return value
+    shift += 7
+
+
+def iter_scenario_records(path: str, payloads: bool = True) -> Iterator[Optional[bytes]]:
+  """The serialized ScenarioRollouts (field 1) of a submission file, or of a writer's `.tmp`
+  stream, in order, one at a time (None for each with payloads=False: a count that seeks past
+  them). A record cut short (a process killed while writing it) ends the stream; the other
+  fields (the metadata) are skipped. A byte that starts no field is a ValueError naming the file."""
+  with open(path, "rb") as f:
+    while True:
+      tag = _read_varint(f)
+      if tag is None:
+        return
+      number, wire = tag >> 3, tag & 7
+      if wire == 0:
+        if _read_varint(f) is None:
+          return
+      elif wire in (1, 5):
+        f.seek(8 if wire == 1 else 4, os.SEEK_CUR)
+      elif wire == 2:
+        length = _read_varint(f)
+        if length is None:
+          return
+        if number == 1 and payloads:
+          data = f.read(length)
+          if len(data) < length:
+            return
+          yield data
+          continue
+        end = f.seek(length, os.SEEK_CUR)
+        if end > os.fstat(f.fileno()).st_size:
+          return
+        if number == 1:
+          yield None
+      else:
+        raise ValueError(f"{path}: not a SimAgentsChallengeSubmission stream (wire type {wire} at byte "
+                         f"{f.tell()})")
+
+
+def count_scenarios(path: str) -> int:
+  """How many complete ScenarioRollouts `iter_scenario_records` would yield (0 for no file)."""
+  return sum(1 for _ in iter_scenario_records(path, payloads=False)) if os.path.exists(path) else 0
+
+
 class SubmissionWriter:
   """Writes a SimAgentsChallengeSubmission one ScenarioRollouts at a time, so
   a shard never sits whole in memory: the repeated field 1 streamed first, the
@@ -121,9 +175,16 @@ class SubmissionWriter:
     self._file = open(f"{path}.tmp", "wb")
 
   def add(self, rollouts) -> None:
-    self._file.write(_field_bytes(1, rollouts.SerializeToString()))
-    self.scenario_ids.append(rollouts.scenario_id)
+    self.add_serialized(rollouts.SerializeToString(), rollouts.scenario_id)
+
+  def add_serialized(self, payload: bytes, scenario_id: str) -> None:
+    """Appends one ScenarioRollouts already serialized (`iter_scenario_records`)."""
+    self._file.write(_field_bytes(1, payload))
+    self.scenario_ids.append(scenario_id)
     self.count += 1
+
+  def flush(self) -> None:
+    self._file.flush()
 
   def close(self, suffix: str = "") -> str:
     """Finishes the file as `path + suffix`; returns that path."""

@@ -120,6 +120,20 @@ def read_records(path: str, start: int = 0, verify: bool = True) -> Iterator[byt
       index += 1
 
 
+def count_records(path: str) -> int:
+  """How many records a TFRecord file holds, from the headers alone (a truncated last record
+  counts; `read_records` reports it)."""
+  count, size = 0, os.path.getsize(path)
+  with open(path, "rb") as f:
+    while f.tell() < size:
+      header = f.read(12)
+      if len(header) < 12:
+        break
+      f.seek(struct.unpack("<Q", header[:8])[0] + 4, os.SEEK_CUR)
+      count += 1
+  return count
+
+
 def write_record(f: BinaryIO, data: bytes) -> None:
   length = struct.pack("<Q", len(data))
   f.write(length)
