@@ -260,9 +260,7 @@ def _follow_jobs(procs, target: str, args) -> None:
   import time
   from tqdm.auto import tqdm
   from pcdiff_jax.data import tfrecord
-  if args.no_progress:
-    for proc in procs:
-      proc.wait()
+  if args.no_progress:   # the caller's communicate() waits (and drains their output)
     return
   total = sum(tfrecord.count_records(f) for f in wosac.select_files(args.scenarios, args.shard))
   total = min(total, args.max_scenarios) if args.max_scenarios else total

@@ -577,8 +577,9 @@ def merge_parts(path: str, count: int):
           writer.add(rollouts[i])
   for j in range(count):
     os.remove(part_path(path, j, count))
-    if os.path.exists(run_record_path(part_path(path, j, count))):
-      os.remove(run_record_path(part_path(path, j, count)))
+    settings = run_record_path(part_path(path, j, count))
+    if os.path.exists(settings):
+      os.remove(settings)
   return writer.count, head
 
 
