@@ -124,6 +124,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="also fine-tune the encoder (proposals, SIMPL-AR) for this many steps per round, "
                       "before the denoiser")
   p.add_argument("--encoder-learning-rate", type=float, default=5e-4)
+  p.add_argument("--history-dropout", type=float, default=0.0, metavar="P",
+                 help="with --encoder-steps: the share of agents whose history before the current "
+                      "step the encoder does not see in training (`training.perturb.drop_history`)")
   p.add_argument("--batch-size", type=int, default=None, help="default: the model's stage-2 batch size")
   p.add_argument("--mix", type=float, default=0.5, help="fraction of each batch from on-policy examples")
   p.add_argument("--times", type=int, nargs="+", default=[20, 30, 40, 50],
@@ -175,6 +178,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.error("--first-scene must be >= 0")
   if args.encoder_steps < 0:
     p.error("--encoder-steps must be >= 0")
+  if not 0.0 <= args.history_dropout < 1.0:
+    p.error("--history-dropout must be in [0, 1)")
+  if args.history_dropout and not args.encoder_steps:
+    p.error("--history-dropout trains the encoder: give --encoder-steps")
   if args.policy == "simpl-ar" and not args.encoder_steps:
     p.error("--policy simpl-ar trains SIMPL-AR's encoder only: give --encoder-steps")
   if args.policy == "simpl-ar" and args.encoder_from:
@@ -354,7 +361,8 @@ def main(argv=None) -> int:
                                   learning_rate=args.encoder_learning_rate,
                                   warmup_steps=min(50, args.encoder_steps // 10),
                                   eval_every=args.encoder_steps, checkpoint_every=min(100, args.encoder_steps),
-                                  seed=args.seed, batch_size=args.batch_size or model_cfg.encoder_train.batch_size)
+                                  seed=args.seed, batch_size=args.batch_size or model_cfg.encoder_train.batch_size,
+                                  history_dropout=args.history_dropout)
         enc_state, _ = closed_loop.finetune_encoder(models if simpl else models.encoder, model_cfg, logged,
                                                     on_policy, round_dir, etc, ocfg,
                                                     progress=not args.no_progress, real=real,

@@ -161,7 +161,8 @@ class TrainConfig:
   cosine decay to `final_lr_fraction` x it at `total_steps`; gradients are
   clipped to a global norm of `grad_clip`. Every `*_every` counts optimizer
   steps. Examples are the scenes at the replanning steps `current_steps`;
-  `perturb` adds recovery examples to the training batches (not validation).
+  `perturb` adds recovery examples to the training batches (not validation),
+  `history_dropout` hides histories in an encoder stage's batches.
   """
   batch_size: int = 16
   learning_rate: float = 1e-3
@@ -179,6 +180,10 @@ class TrainConfig:
   seed: int = 0
   current_steps: tuple[int, ...] = (10,)
   perturb: PerturbConfig = PerturbConfig()
+  # Encoder stages only: with this probability an agent's history before the
+  # current step is hidden (`perturb.drop_history`), so the proposals learn to
+  # read the scene, not to extrapolate a history the policy itself drove.
+  history_dropout: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)

@@ -164,6 +164,17 @@ def test_latent_report_needs_a_workdir_or_a_checkpoint(tmp_path, capsys):
   assert str(tmp_path / "none") in capsys.readouterr().err
 
 
+def test_finetune_history_dropout_needs_an_encoder_to_train(tmp_path, capsys):
+  from experiments import finetune
+  base = ["--from", str(tmp_path), "--data", "x.tfrecord", "--workdir", str(tmp_path / "w")]
+  for extra, named in ((["--history-dropout", "0.5"], "--encoder-steps"),
+                       (["--history-dropout", "1.0", "--encoder-steps", "5"], "--history-dropout")):
+    with pytest.raises(SystemExit) as err:
+      finetune.parse_args(base + extra)
+    assert err.value.code == 2 and named in capsys.readouterr().err
+  assert finetune.parse_args(base + ["--history-dropout", "0.5", "--encoder-steps", "5"]).history_dropout == 0.5
+
+
 def test_diagnose_drift_checks_its_policy_fields(tmp_path, capsys):
   from experiments import diagnose
   for bad, named in (("bogus=1", "bogus"), ("select_samples=0", "select_samples")):

@@ -68,3 +68,22 @@ def test_perturb_is_jittable_with_batch_dims():
   out = fn(batch, jax.random.key(1))
   assert out.targets.future_xy.shape == (2, 3, T, 2)
   assert np.all(np.isfinite(np.asarray(out.targets.future_xy)))
+
+
+def test_drop_history_hides_the_past_of_chosen_agents_and_keeps_the_current_step():
+  batch = _straight_batch(64)
+  hist = jnp.arange(64 * 11 * AGENT_DIM, dtype=jnp.float32).reshape(64, 11, AGENT_DIM) + 1.0
+  batch = batch.replace(feats=batch.feats.replace(agent_history=hist,
+                                                  agent_history_valid=jnp.ones((64, 11), bool),
+                                                  agent_valid=jnp.arange(64) < 60))
+  out = jax.jit(lambda b, k: perturb.drop_history(b, k, 0.5))(batch, jax.random.key(3))
+  valid, h = np.asarray(out.feats.agent_history_valid), np.asarray(out.feats.agent_history)
+  dropped = ~valid[:, :-1].any(-1)
+  assert 15 < dropped[:60].sum() < 45 and not dropped[60:].any()   # padded slots are never chosen
+  assert valid[:, -1].all()
+  np.testing.assert_array_equal(h[:, -1], np.asarray(hist[:, -1]))              # the current step stays
+  assert (h[dropped, :-1] == 0).all()
+  np.testing.assert_array_equal(h[~dropped], np.asarray(hist)[~dropped])       # the others are untouched
+  assert valid[~dropped].all()
+  np.testing.assert_array_equal(np.asarray(out.targets.future_xy), np.asarray(batch.targets.future_xy))
+  assert perturb.drop_history(batch, jax.random.key(3), 0.0) is batch

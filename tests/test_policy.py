@@ -175,6 +175,26 @@ def test_track_execution_follows_the_planned_path(models):
     policy.actor(CFG, policy.PolicyConfig(execute="teleport"))
 
 
+def test_encoder_history_hides_all_but_the_last_steps_from_the_encoder_only(models):
+  """`encoder_history=k`: the proposals are the encoder's on the last k history
+  steps; the features the rest of the policy reads keep the whole history."""
+  from pcdiff_jax.policy import planning
+  state = env.reset(make_scene(num_steps=91))
+  pcfg = lambda k: policy.PolicyConfig(select_samples=1, still_gate=(0.0, 0.0), encoder_history=k)
+  run = jax.jit(lambda k: planning.encode(models, state, CFG, pcfg(k)), static_argnums=0)
+  full, cut = run(0), run(1)
+  valid = np.asarray(full.batched.agent_history_valid)
+  assert valid[..., :-1].any()
+  np.testing.assert_array_equal(np.asarray(cut.feats.agent_history_valid), np.asarray(full.feats.agent_history_valid))
+  masked = planning.recent_history(full.batched, 1)
+  assert not np.asarray(masked.agent_history_valid)[..., :-1].any()
+  np.testing.assert_array_equal(np.asarray(masked.agent_history_valid)[..., -1], valid[..., -1])
+  want = jax.jit(lambda f: planner.condition(models.encoder, models.stats, f, CFG))(masked)
+  np.testing.assert_allclose(np.asarray(cut.cond.proposals), np.asarray(want.proposals), rtol=1e-4, atol=1e-3)
+  assert not np.allclose(np.asarray(cut.cond.proposals), np.asarray(full.cond.proposals))
+  assert planning.recent_history(full.batched, 0) is full.batched
+
+
 def test_prior_centred_on_the_top_mode(models):
   state = env.reset(make_scene(num_steps=91))
   from pcdiff_jax.model import features as features_lib

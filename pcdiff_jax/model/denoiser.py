@@ -251,8 +251,11 @@ class Denoiser(nn.Module):
 
 def init(rng: Array, y: Array, s: Array, inputs: DenoiserInputs, config: DenoiserConfig) -> Any:
   """Parameters for one scene's shapes (pass unbatched y (A, d_y) and inputs)."""
-  # Jitted: an eager init compiles every op on its own.
-  return jax.jit(Denoiser(config, y.shape[-1]).init)(rng, y, s, inputs, True, jnp.zeros_like(y))
+  # Jitted: an eager init compiles every op on its own. `deterministic` stays a
+  # Python bool (a traced one breaks dropout's check when its rate is not 0).
+  module = Denoiser(config, y.shape[-1])
+  return jax.jit(lambda rng, y, s, inputs: module.init(rng, y, s, inputs, True, jnp.zeros_like(y)))(
+      rng, y, s, inputs)
 
 
 def with_new_inputs(params: Any, config: DenoiserConfig) -> Any:

@@ -19,6 +19,9 @@ class PolicyConfig:
       ("Ablation: the proposal prior").
     prior_centre: "mean" centres the prior on the mean of an agent's K proposal latents, "top1"
       on its most likely one.
+    encoder_history: the steps of each agent's history the encoder reads, ending at the
+      current one (0: all): 1 for an encoder trained with history dropout, so the policy's
+      own past cannot feed its proposals (docs/RESULTS.md, "Ablation: history dropout").
     consistent_noise: draw each object's initial noise once per rollout and reuse it at every
       cold replan, so consecutive plans stay on one mode (smoother, but committed to it).
     guidance: test-time guidance of every plan (`model.guidance`; "Table III: adversarial
@@ -83,6 +86,7 @@ class PolicyConfig:
   execute: str = "actions"
   track_steps: int = 5
   prior_centre: str = "mean"
+  encoder_history: int = 0
   warm_start: bool = True
   warm_step: int = 90
   warm_ddim_steps: int = 1

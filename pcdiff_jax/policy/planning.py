@@ -47,13 +47,21 @@ class WarmStart:
   has: Array
 
 
+def recent_history(feats, steps: int):
+  """feats (..., A, H, ...) with only the last `steps` history steps valid (0: all kept)."""
+  if steps <= 0:
+    return feats
+  h = feats.agent_history_valid.shape[-1]
+  return feats.replace(agent_history_valid=feats.agent_history_valid & (jnp.arange(h) >= h - steps))
+
+
 def encode(models: Models, state: SimulatorState, cfg: Config, policy: PolicyConfig,
            controlled: Optional[Array] = None) -> Encoded:
   """The scene at its current step, encoded: controlled (O,) objects are modelled first after
   the SDC, whatever their distance."""
   feats = features_lib.scene_features(state, cfg.features, keep=controlled)
   batched = jax.tree_util.tree_map(lambda a: a[None], feats)
-  cond = planner.condition(models.encoder, models.stats, batched, cfg)
+  cond = planner.condition(models.encoder, models.stats, recent_history(batched, policy.encoder_history), cfg)
   hold = None
   if policy.still_gate[0] > 0:
     hold = still_agents(cond, models.stats, cfg, *policy.still_gate)[0]                  # (A,)

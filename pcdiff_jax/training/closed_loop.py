@@ -338,7 +338,8 @@ def finetune_encoder(encoder_params, model_cfg: Config, log_examples: Example, o
                      max_minutes: Optional[float] = None, progress: bool = True,
                      real: Optional[Example] = None, real_share: float = 0.0):
   """Fine-tunes the encoder in WORKDIR/encoder (resumable) on mixed batches
-  (`mixed_batch_at`) with stage 1's loss. Returns (state, {})."""
+  (`mixed_batch_at`) with stage 1's loss and `train_cfg.history_dropout`.
+  Returns (state, {})."""
   from pcdiff_jax import config as config_lib
   from pcdiff_jax.model import encoder
   from pcdiff_jax.training import encoder_loss, encoder_stage
@@ -348,9 +349,9 @@ def finetune_encoder(encoder_params, model_cfg: Config, log_examples: Example, o
 
   def loss_fn(params, batch, rng):
     logged, visited = batch
-    rng, k_perturb = jax.random.split(rng)
+    rng, k_perturb, k_drop = jax.random.split(rng, 3)
     logged = perturb.perturb(logged, k_perturb, train_cfg.perturb, model_cfg.kinematics.dt)
-    both = _concat(logged, visited)
+    both = perturb.drop_history(_concat(logged, visited), k_drop, train_cfg.history_dropout)
     out = encoder.apply(params, both.feats, model_cfg.encoder, rng=rng)
     return encoder_loss.proposal_loss(out, both.targets, cls_weight=train_cfg.cls_weight)
   step_fn = trainer.make_train_step(loss_fn, tx)

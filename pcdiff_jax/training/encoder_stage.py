@@ -38,10 +38,12 @@ def cache_spec(cfg: Config) -> data_lib.CacheSpec:
 
 
 def make_loss_fn(cfg: Config):
-  """Training loss; batches get the recovery examples of `encoder_train.perturb`."""
+  """Training loss; batches get the recovery examples of `encoder_train.perturb`
+  and the hidden histories of `encoder_train.history_dropout`."""
   def loss_fn(params, batch: Example, rng):
-    rng, k_perturb = jax.random.split(rng)
+    rng, k_perturb, k_drop = jax.random.split(rng, 3)
     batch = perturb.perturb(batch, k_perturb, cfg.encoder_train.perturb, cfg.kinematics.dt)
+    batch = perturb.drop_history(batch, k_drop, cfg.encoder_train.history_dropout)
     out = encoder.apply(params, batch.feats, cfg.encoder, rng=rng)
     return encoder_loss.proposal_loss(out, batch.targets, cls_weight=cfg.encoder_train.cls_weight)
   return loss_fn

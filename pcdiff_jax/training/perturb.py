@@ -97,3 +97,20 @@ def perturb(batch: Example, rng: Array, cfg: PerturbConfig, dt: float = 0.1) -> 
   new_dir = jnp.concatenate([c * d[..., :1] - s * d[..., 1:], s * d[..., :1] + c * d[..., 1:]], -1)
   feats = feats.replace(agent_center=feats.agent_center + delta[..., None] * left, agent_dir=new_dir)
   return Example(feats=feats, targets=targets)
+
+
+def drop_history(batch: Example, rng: Array, prob: float) -> Example:
+  """A batch (..., A, ...) in which each valid agent, with probability `prob`,
+  keeps only the current step of its history (ChauffeurNet's past-motion
+  dropout, ../shared/REFERENCES.md): in closed loop the history is the policy's
+  own, and proposals that extrapolate it compound its braking (docs/RESULTS.md,
+  "Ablation: history dropout"). The current step (pose, speed) stays."""
+  if prob <= 0.0:
+    return batch
+  feats = batch.feats
+  pick = feats.agent_valid & (jax.random.uniform(rng, feats.agent_valid.shape) < prob)   # (..., A)
+  past = jnp.arange(feats.agent_history_valid.shape[-1]) < feats.agent_history_valid.shape[-1] - 1
+  hidden = pick[..., None] & past                                          # (..., A, H)
+  feats = feats.replace(agent_history_valid=feats.agent_history_valid & ~hidden,
+                        agent_history=jnp.where(hidden[..., None], 0.0, feats.agent_history))
+  return Example(feats=feats, targets=batch.targets)
