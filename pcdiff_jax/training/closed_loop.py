@@ -349,9 +349,11 @@ def finetune_encoder(encoder_params, model_cfg: Config, log_examples: Example, o
 
   def loss_fn(params, batch, rng):
     logged, visited = batch
-    rng, k_perturb, k_drop = jax.random.split(rng, 3)
+    rng, k_perturb = jax.random.split(rng)
     logged = perturb.perturb(logged, k_perturb, train_cfg.perturb, model_cfg.kinematics.dt)
-    both = perturb.drop_history(_concat(logged, visited), k_drop, train_cfg.history_dropout)
+    # Its own key folded off, so runs without dropout draw as before it existed.
+    both = perturb.drop_history(_concat(logged, visited), jax.random.fold_in(k_perturb, 1),
+                                train_cfg.history_dropout)
     out = encoder.apply(params, both.feats, model_cfg.encoder, rng=rng)
     return encoder_loss.proposal_loss(out, both.targets, cls_weight=train_cfg.cls_weight)
   step_fn = trainer.make_train_step(loss_fn, tx)

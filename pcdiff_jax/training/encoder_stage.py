@@ -41,9 +41,10 @@ def make_loss_fn(cfg: Config):
   """Training loss; batches get the recovery examples of `encoder_train.perturb`
   and the hidden histories of `encoder_train.history_dropout`."""
   def loss_fn(params, batch: Example, rng):
-    rng, k_perturb, k_drop = jax.random.split(rng, 3)
+    rng, k_perturb = jax.random.split(rng)
     batch = perturb.perturb(batch, k_perturb, cfg.encoder_train.perturb, cfg.kinematics.dt)
-    batch = perturb.drop_history(batch, k_drop, cfg.encoder_train.history_dropout)
+    # Its own key folded off, so runs without dropout draw as before it existed.
+    batch = perturb.drop_history(batch, jax.random.fold_in(k_perturb, 1), cfg.encoder_train.history_dropout)
     out = encoder.apply(params, batch.feats, cfg.encoder, rng=rng)
     return encoder_loss.proposal_loss(out, batch.targets, cls_weight=cfg.encoder_train.cls_weight)
   return loss_fn
