@@ -184,6 +184,18 @@ def scatter_to_objects(values: Array, features: SceneFeatures, num_objects: int,
   return out.at[idx].set(values, mode="drop")
 
 
+def hide_history(features: SceneFeatures, keep_steps: int, agents: Optional[Array] = None) -> SceneFeatures:
+  """`features` (..., A, H, ...) with each agent's history before its last `keep_steps` steps
+  invalid and zeroed, for the agents (..., A) where `agents` is true (every agent when None).
+  Both the policy's `encoder_history` and the encoder's history dropout in training use it."""
+  h = features.agent_history_valid.shape[-1]
+  hidden = jnp.arange(h) < h - keep_steps                                    # (H,)
+  if agents is not None:
+    hidden = agents[..., None] & hidden                                      # (..., A, H)
+  return features.replace(agent_history_valid=features.agent_history_valid & ~hidden,
+                          agent_history=jnp.where(hidden[..., None], 0.0, features.agent_history))
+
+
 # ----------------------------------------------------------------------------
 # Agents.
 

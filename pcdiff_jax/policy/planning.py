@@ -49,10 +49,7 @@ class WarmStart:
 
 def recent_history(feats, steps: int):
   """feats (..., A, H, ...) with only the last `steps` history steps valid (0: all kept)."""
-  if steps <= 0:
-    return feats
-  h = feats.agent_history_valid.shape[-1]
-  return feats.replace(agent_history_valid=feats.agent_history_valid & (jnp.arange(h) >= h - steps))
+  return feats if steps <= 0 else features_lib.hide_history(feats, steps)
 
 
 def encode(models: Models, state: SimulatorState, cfg: Config, policy: PolicyConfig,

@@ -107,10 +107,6 @@ def drop_history(batch: Example, rng: Array, prob: float) -> Example:
   "Ablation: history dropout"). The current step (pose, speed) stays."""
   if prob <= 0.0:
     return batch
-  feats = batch.feats
-  pick = feats.agent_valid & (jax.random.uniform(rng, feats.agent_valid.shape) < prob)   # (..., A)
-  past = jnp.arange(feats.agent_history_valid.shape[-1]) < feats.agent_history_valid.shape[-1] - 1
-  hidden = pick[..., None] & past                                          # (..., A, H)
-  feats = feats.replace(agent_history_valid=feats.agent_history_valid & ~hidden,
-                        agent_history=jnp.where(hidden[..., None], 0.0, feats.agent_history))
+  pick = batch.feats.agent_valid & (jax.random.uniform(rng, batch.feats.agent_valid.shape) < prob)   # (..., A)
+  feats = features_lib.hide_history(batch.feats, 1, pick)
   return Example(feats=feats, targets=batch.targets)
