@@ -607,7 +607,12 @@ def test_a_noisy_logged_speed_does_not_force_an_acceleration(models):
   trend = np.asarray(policy.logged_accel(noisy, dt))
   np.testing.assert_allclose(trend, 0.0, atol=1e-4)                  # constant speeds over the second
   ramp = noisy.sim_trajectory.replace(vel_x=noisy.sim_trajectory.vel_x.at[:, t - 10].add(-30.0))
-  assert np.all(np.abs(np.asarray(policy.logged_accel(noisy.replace(sim_trajectory=ramp), dt))) <= 4.0)
+  ramped = np.abs(np.asarray(policy.logged_accel(noisy.replace(sim_trajectory=ramp), dt)))
+  bound = policy.PolicyConfig().jerk_start_bound
+  assert np.all(ramped <= bound + 1e-6) and ramped.max() == pytest.approx(bound)
+  tight = policy.actor(CFG, policy.PolicyConfig(select_samples=1, jerk_start_bound=0.5))
+  start = jax.jit(tight.init)(jax.random.PRNGKey(0), noisy.replace(sim_trajectory=ramp))
+  assert np.abs(np.asarray(start.accel)).max() == pytest.approx(0.5)      # the actor reads its bound
   act = policy.actor(CFG, policy.PolicyConfig(select_samples=1, jerk_limit=(1.5, 5.0), still_gate=(0.0, 0.0)))
   ps = jax.jit(act.init)(jax.random.PRNGKey(0), noisy)
   np.testing.assert_allclose(np.asarray(ps.accel), trend)

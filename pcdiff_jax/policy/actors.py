@@ -88,7 +88,7 @@ def actor(cfg: Config, policy: PolicyConfig = PolicyConfig()) -> Actor:
                      adversary=planning.pursuer_of(state, cfg, policy.guidance),
                      noise=jax.random.normal(jax.random.fold_in(rng, 1), (num_objects, cfg.diffusion.latent_dim)),
                      road=planning.road_for(state, policy),
-                     accel=execution.logged_accel(state, cfg.kinematics.dt))
+                     accel=execution.logged_accel(state, cfg.kinematics.dt, bound=policy.jerk_start_bound))
 
   def replan(models, state, ps: PlanState, rng):
     """A new plan (O, T, 2), which objects have one (O,) and its path (O, T, 2), blended with

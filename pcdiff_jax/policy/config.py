@@ -62,6 +62,11 @@ class PolicyConfig:
       point track_steps ahead (pure pursuit, as SIMPL-AR executes its proposals).
     jerk_limit: (rise, fall) m/s^3: the executed acceleration moves from the last executed one
       by at most rise * dt up and fall * dt down; 0 turns a side off.
+    jerk_start_bound: m/s^2: before the first executed step the reference is the log's trend
+      over its last second within +-this bound (`execution.logged_accel`). A wrong negative
+      reference costs a^2 / (2 rise) of speed before the agent may speed up (5.3 m/s at 4,
+      1.3 at 2); 2 is the bound nearest the next second's trend on real val's logs
+      (docs/RESULTS.md, "Ablation: the jerk limit's first reference").
     follow: (reaction s, braking m/s^2): a vehicle or cyclist accelerates at most as much as
       keeps it able to stop behind every leader on its planned path if both brake this hard,
       reacting this late (Gipps' safe speed, `execution.follow_bound`); (0, 0) is off. Fewer
@@ -99,6 +104,7 @@ class PolicyConfig:
   select_stride: int = 3
   select_neighbours: int = 16
   jerk_limit: tuple[float, float] = (1.5, 5.0)
+  jerk_start_bound: float = 2.0
   follow: tuple[float, float] = (0.5, 4.0)
   stop_hold: bool = True
   max_curvature: float = 0.3
@@ -158,6 +164,8 @@ def validate(cfg: Config, policy: PolicyConfig) -> None:
     raise ValueError(f"select_lookahead must be in [1, {cfg.encoder.horizon}], got {policy.select_lookahead}")
   if len(policy.jerk_limit) != 2 or not all(j >= 0 for j in policy.jerk_limit):
     raise ValueError(f"jerk_limit must be two limits >= 0 in m/s^3 (rise, fall), got {policy.jerk_limit}")
+  if policy.jerk_start_bound < 0:
+    raise ValueError(f"jerk_start_bound must be >= 0 m/s^2, got {policy.jerk_start_bound}")
   if not 1 <= policy.select_stride <= policy.select_lookahead:
     raise ValueError(f"select_stride must be in [1, select_lookahead], got {policy.select_stride}")
   if policy.select_neighbours < 0:

@@ -116,11 +116,13 @@ def executed_accel(state: SimulatorState, dt: float) -> Array:
   return _mean_accel(state, dt, 1)
 
 
-def logged_accel(state: SimulatorState, dt: float, steps: int = 10, bound: float = 4.0) -> Array:
+def logged_accel(state: SimulatorState, dt: float, steps: int = 10,
+                 bound: float = PolicyConfig.jerk_start_bound) -> Array:
   """(O,) each object's mean acceleration along its heading over the last `steps` steps of its
   trajectory, within +-bound (0 where either end is invalid): the jerk limit's reference at a
   rollout's first step. A one-step difference of logged speeds is noise on real logs (tens of
-  m/s^2); over a second it is the trend, and the bound keeps a bad heading from setting it."""
+  m/s^2); over a second it is the trend, and the bound (`PolicyConfig.jerk_start_bound`) keeps
+  tracker noise from setting it."""
   return jnp.clip(_mean_accel(state, dt, steps), -bound, bound)
 
 
