@@ -25,8 +25,8 @@ agent count (8-128), DDIM steps and scenarios per call (vmap); and the
 jitted step. These rows plan with one sample (`select_samples=1`); the
 default sample selection (S = 8) gets its own rows: a cold
 replanning (`replan_select8`) and the 80-step closed loop with every default
-(`fused_default_ms_per_step`; without selection's map term, with one sample and
-with four samples too), the actor's state made once per scenario outside the timed loop (its road
+(`fused_default_ms_per_step`; without selection's map term or its box overlaps, with one
+sample and with four samples too), the actor's state made once per scenario outside the timed loop (its road
 field: `default_actor_init_ms`). Compile time is excluded and reported separately.
 
 `wosac` (not in the default sections): seconds per scene of a WOSAC export
@@ -297,7 +297,8 @@ def bench_fused_vs_loop(state, cfg, num_steps: int, repeats: int) -> dict:
                      ("fused_default_select4_ms_per_step", dataclasses.replace(default, select_samples=4)),
                      ("fused_default_no_still_gate_ms_per_step",
                       dataclasses.replace(default, still_gate=(0.0, 0.0), max_curvature=0.0)),
-                     ("fused_default_no_follow_ms_per_step", dataclasses.replace(default, follow=(0.0, 0.0)))):
+                     ("fused_default_no_follow_ms_per_step", dataclasses.replace(default, follow=(0.0, 0.0))),
+                     ("fused_default_circles_ms_per_step", dataclasses.replace(default, select_boxes=False))):
     act = policy.actor(cfg, pcfg)
     init = jax.jit(act.init)(rng, start)
     row[name] = _compiled_ms(

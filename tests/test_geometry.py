@@ -24,19 +24,35 @@ def _reference_overlap(ci, cj):
   return any(cross(ci[a], ci[(a + 1) % 4], cj[b], cj[(b + 1) % 4]) for a in range(4) for b in range(4))
 
 
-def test_sat_matches_reference_on_random_boxes():
-  rng = np.random.default_rng(0)
-  n = 40
+def _random_boxes(seed: int, n: int = 40) -> list:
+  """x, y, yaw, length, width (n,) of boxes scattered over 12 x 12 m, many of them overlapping."""
+  rng = np.random.default_rng(seed)
   x, y = rng.uniform(-6, 6, n), rng.uniform(-6, 6, n)
   yaw = rng.uniform(-np.pi, np.pi, n)
   length, width = rng.uniform(0.5, 6, n), rng.uniform(0.5, 3, n)
-  args = [jnp.asarray(a, jnp.float32) for a in (x, y, yaw, length, width)]
+  return [jnp.asarray(a, jnp.float32) for a in (x, y, yaw, length, width)]
+
+
+def test_sat_matches_reference_on_random_boxes():
+  n = 40
+  args = _random_boxes(0, n)
   ours = np.asarray(geometry.pairwise_box_overlap(*args))
   corners = np.asarray(geometry.box_corners(*args), np.float64)
   ref = np.array([[i == j or _reference_overlap(corners[i], corners[j]) for j in range(n)] for i in range(n)])
   assert ref.sum() > n + 20 and (~ref).sum() > 100  # both cases are exercised
   np.testing.assert_array_equal(ours, ref)
   np.testing.assert_array_equal(ours, ours.T)
+
+
+def test_closed_form_sat_matches_the_corner_projections():
+  n = 40
+  args = _random_boxes(1, n)
+  xy, fwd = jnp.stack(args[:2], -1), geometry.unit(args[2])
+  half = jnp.stack(args[3:], -1) / 2.0
+  ours = np.asarray(geometry.boxes_overlap(xy[:, None], fwd[:, None], half[:, None], xy[None], fwd[None], half[None]))
+  ref = np.asarray(geometry.pairwise_box_overlap(*args))
+  assert ref.sum() > n + 20 and (~ref).sum() > 100
+  np.testing.assert_array_equal(ours, ref)
 
 
 def test_overlap_batched():

@@ -24,20 +24,29 @@ from pcdiff_jax.sim import geometry
 from pcdiff_jax.sim.datatypes import Array
 
 
-def collision_counts(xy: Array, yaw: Array, length: Array, width: Array, valid: Array) -> Array:
+def collision_counts(xy: Array, yaw: Array, length: Array, width: Array, valid: Array,
+                     boxes: bool = False) -> Array:
   """Pairwise overlap counts between every candidate pair.
 
   xy (A, K, L, 2), yaw (A, K, L) scene frame; length, width, valid (A,).
   Returns (A, K, A, K): circle-pair overlaps summed over the L steps (0 on
-  the diagonal blocks and for padded agents).
+  the diagonal blocks and for padded agents); boxes: plus one per step where
+  the boxes themselves overlap, so a corner the circles miss still counts.
   """
   num, k, steps = xy.shape[:3]
   c = geometry.box_circles(xy, yaw, length[:, None, None], width[:, None, None])       # (A, K, L, 3, 2)
   c = jnp.moveaxis(c, 2, 0).reshape(steps, num * k, 3, 2)                              # (L, P, 3, 2)
   r = jnp.repeat(width / 2.0, k)                                                       # (P,)
   rr2 = (r[:, None] + r[None, :]) ** 2                                                 # (P, P)
+  centre = jnp.moveaxis(xy, 2, 0).reshape(steps, num * k, 2)                           # (L, P, 2)
+  fwd = geometry.unit(jnp.moveaxis(yaw, 2, 0).reshape(steps, num * k))                 # (L, P, 2)
+  half = jnp.repeat(jnp.stack([length, width], -1) / 2.0, k, axis=0)                   # (P, 2)
 
-  def per_step(hits, ct):                                                  # ct (P, 3, 2)
+  def per_step(hits, step):
+    ct, xyt, ft = step                                                     # (P, 3, 2), (P, 2), (P, 2)
+    if boxes:
+      hits = hits + geometry.boxes_overlap(xyt[:, None], ft[:, None], half[:, None],
+                                           xyt[None], ft[None], half[None])
     # One (P, P) matrix per circle pair, squared distances as a matmul (|a|^2 + |b|^2 - 2 a.b):
     # a broadcast difference tensor was ~20x slower on CPU, one (3P, 3P) matrix reduced over
     # its circle axes 1.5x slower, and using (j, i) = (i, j)^T no faster.
@@ -49,20 +58,22 @@ def collision_counts(xy: Array, yaw: Array, length: Array, width: Array, valid: 
         hits = hits + (sq[:, i, None] + sq[None, :, j] - 2.0 * dot < rr2)
     return hits, None
 
-  hits, _ = jax.lax.scan(per_step, jnp.zeros((num * k, num * k), jnp.int32), c)
+  hits, _ = jax.lax.scan(per_step, jnp.zeros((num * k, num * k), jnp.int32), (c, centre, fwd))
   hits = hits.reshape(num, k, num, k).astype(jnp.float32)
   pair = valid[:, None] & valid[None, :] & ~jnp.eye(valid.shape[0], dtype=bool)
   return jnp.where(pair[:, None, :, None], hits, 0.0)
 
 
-def nearest_others(xy: Array, length: Array, width: Array, valid: Array, count: int) -> tuple[Array, Array]:
+def nearest_others(xy: Array, length: Array, width: Array, valid: Array, count: int,
+                   boxes: bool = False) -> tuple[Array, Array]:
   """The `count` other agents whose candidates come closest to each agent's:
   the broad phase of `near_collision_counts`.
 
   xy (A, K, L, 2) candidate centres, length, width, valid (A,). At each step
   an agent's K candidates lie within R = max_k |xy_k - mean_k xy_k| +
-  max(length, width) / 2 of their mean, and so do its 3 circles; two agents'
-  candidates can only overlap where their means are closer than R_i + R_j.
+  max(length, width) / 2 of their mean, and so do its 3 circles (boxes: the
+  half diagonal, which reaches the corners); two agents' candidates can only
+  overlap where their means are closer than R_i + R_j.
   Returns others (A, M), M = min(count, A - 1): agent indices, nearest
   (smallest min-over-steps gap |c_i - c_j| - R_i - R_j) first, and complete
   (A,): no agent outside an agent's list can overlap it (its gap is
@@ -70,7 +81,7 @@ def nearest_others(xy: Array, length: Array, width: Array, valid: Array, count: 
   and self entries sort last.
   """
   centre = jnp.mean(xy, axis=1)                                                    # (A, L, 2)
-  extent = jnp.maximum(length, width)[:, None] / 2.0
+  extent = (jnp.hypot(length, width) if boxes else jnp.maximum(length, width))[:, None] / 2.0
   reach = jnp.max(jnp.linalg.norm(xy - centre[:, None], axis=-1), axis=1) + extent   # (A, L)
   dist = jnp.linalg.norm(centre[:, None] - centre[None, :], axis=-1)               # (A, A, L)
   gap = jnp.min(dist - reach[:, None] - reach[None, :], axis=-1)                  # (A, A)
@@ -86,7 +97,7 @@ def nearest_others(xy: Array, length: Array, width: Array, valid: Array, count: 
 
 
 def near_collision_counts(xy: Array, yaw: Array, length: Array, width: Array, valid: Array,
-                          count: int) -> tuple[Array, Array, Array]:
+                          count: int, boxes: bool = False) -> tuple[Array, Array, Array]:
   """`collision_counts` against each agent's `count` nearest others only
   (`nearest_others`): the same counts wherever `complete`, in count / A of
   the dense counts' work.
@@ -94,16 +105,24 @@ def near_collision_counts(xy: Array, yaw: Array, length: Array, width: Array, va
   xy (A, K, L, 2), yaw (A, K, L) scene frame; length, width, valid (A,).
   Returns coll (A, K, M, K), M = min(count, A - 1): overlaps of agent i's
   candidate k with others[i, m]'s candidate k' (0 for padded or self
-  entries); others (A, M); complete (A,).
+  entries; boxes as in `collision_counts`); others (A, M); complete (A,).
   """
   num, k = xy.shape[:2]
-  others, complete = nearest_others(xy, length, width, valid, count)
+  others, complete = nearest_others(xy, length, width, valid, count, boxes)
   c = geometry.box_circles(xy, yaw, length[:, None, None], width[:, None, None])      # (A, K, L, 3, 2)
   c = jnp.moveaxis(c, 2, 0)                                                         # (L, A, K, 3, 2)
   r = width / 2.0
   rr2 = ((r[:, None] + r[others]) ** 2)[:, None, :, None]                            # (A, 1, M, 1)
+  centre = jnp.moveaxis(xy, 2, 0)                                                   # (L, A, K, 2)
+  fwd = geometry.unit(jnp.moveaxis(yaw, 2, 0))                                      # (L, A, K, 2)
+  half = jnp.stack([length, width], -1) / 2.0                                       # (A, 2)
 
-  def per_step(hits, ct):                                                  # ct (A, K, 3, 2)
+  def per_step(hits, step):
+    ct, xyt, ft = step                                                     # (A, K, 3, 2), (A, K, 2) x 2
+    if boxes:
+      hits = hits + geometry.boxes_overlap(
+          xyt[:, :, None, None], ft[:, :, None, None], half[:, None, None, None],
+          xyt[others][:, None], ft[others][:, None], half[others][:, None, :, None])
     # Per step and circle pair one fused elementwise pass over (A, K, M, K): reducing a
     # broadcast (..., L, 3, 3) difference tensor instead was ~8x slower on a CPU.
     mine = ct[:, :, None, None]                                           # (A, K, 1, 1, 3, 2)
@@ -114,7 +133,7 @@ def near_collision_counts(xy: Array, yaw: Array, length: Array, width: Array, va
         hits = hits + (d[..., 0] ** 2 + d[..., 1] ** 2 < rr2)
     return hits, None
 
-  hits, _ = jax.lax.scan(per_step, jnp.zeros((num, k, others.shape[1], k), jnp.int32), c)
+  hits, _ = jax.lax.scan(per_step, jnp.zeros((num, k, others.shape[1], k), jnp.int32), (c, centre, fwd))
   ok = valid[:, None] & valid[others] & (others != jnp.arange(valid.shape[0])[:, None])  # (A, M)
   return jnp.where(ok[:, None, :, None], hits, 0).astype(jnp.float32), others, complete
 

@@ -56,6 +56,8 @@ class PolicyConfig:
       their start) rather than where their samples go, so the others' choices avoid the place
       they stand ("Ablation: held agents in the sample selection": fewer collisions on real
       and synthetic scenes, the other rates level).
+    select_boxes: overlaps also count one per step where two samples' boxes overlap, so a
+      turning box's corner, which the width / 2 circles miss, is seen.
 
   Execution (filters on the executed action, `policy.execution`):
     execute: "actions" executes the plan's actions open loop; "track" steers towards the plan's
@@ -110,6 +112,7 @@ class PolicyConfig:
   max_curvature: float = 0.3
   still_gate: tuple[float, float] = (2.0, 1.0)
   select_held_still: bool = True
+  select_boxes: bool = True
 
 
 EXECUTE = ("actions", "track")

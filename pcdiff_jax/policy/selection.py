@@ -37,21 +37,24 @@ def select(y0: Array, models: Models, scene, cfg: Config, policy: PolicyConfig, 
     road_here = jax.tree_util.tree_map(lambda a: a[None], road_here)   # a batch of 1 for map_cost
   return select_sample(y0, models, scene.cond, scene.batched, cfg, policy.select_lookahead, keep,
                        road_here, policy.select_map_weight, policy.guidance, policy.select_stride,
-                       policy.select_neighbours, scene.hold if policy.select_held_still else None)
+                       policy.select_neighbours, scene.hold if policy.select_held_still else None,
+                       policy.select_boxes)
 
 
 def select_sample(y0: Array, models: Models, cond: planner.Conditioning, batched, cfg: Config,
                   lookahead: int, keep: Array, road: Optional[RoadField] = None,
                   map_weight: float = 0.0,
                   guidance: guidance_lib.GuidanceConfig = guidance_lib.GuidanceConfig(),
-                  stride: int = 1, neighbours: int = 0, held: Optional[Array] = None) -> Array:
+                  stride: int = 1, neighbours: int = 0, held: Optional[Array] = None,
+                  boxes: bool = False) -> Array:
   """(1, A, d): per agent, one of the S joint samples y0 (S, A, d) of one scene
   (cond, batched: that scene repeated S times) such that the chosen plans
   overlap least over their first `lookahead` steps, every `stride`-th (`PolicyConfig.select_samples`),
   plus map_weight x each sample's J_map on `road` (the scene's field in the
   scene frame) when map_weight > 0; agents where keep (A,) keep sample 0. neighbours > 0: overlaps against each
   agent's that many nearest agents only (`PolicyConfig.select_neighbours`). held (A,): agents
-  the still gate stops, scored where they will be (standing at their start) in every sample."""
+  the still gate stops, scored where they will be (standing at their start) in every sample.
+  boxes: overlaps also count box against box (`joint_selection.collision_counts`)."""
   states = planner.decode_states(models.stats, cond, y0, cfg)[..., :lookahead:stride, :]   # (S, A, L, 4)
   if held is not None:
     states = jnp.where(held[None, :, None, None], 0.0, states)
@@ -61,9 +64,10 @@ def select_sample(y0: Array, models: Models, cond: planner.Conditioning, batched
   xy_a, yaw_a = jnp.moveaxis(xy, 0, 1), jnp.moveaxis(yaw, 0, 1)                  # (A, S, L, ...)
   if neighbours > 0:
     coll, others, _ = joint_selection.near_collision_counts(xy_a, yaw_a, length, width,
-                                                            feats.agent_valid, neighbours)   # (A, S, N, S)
+                                                            feats.agent_valid, neighbours, boxes)   # (A, S, N, S)
   else:
-    coll, others = joint_selection.collision_counts(xy_a, yaw_a, length, width, feats.agent_valid), None
+    coll = joint_selection.collision_counts(xy_a, yaw_a, length, width, feats.agent_valid, boxes)
+    others = None
   num = feats.agent_valid.shape[0]
   unary = jnp.zeros((num, y0.shape[0]))
   if map_weight > 0:

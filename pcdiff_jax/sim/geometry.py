@@ -60,6 +60,27 @@ def _box_axes(yaw: Array) -> Array:
   return jnp.stack([fwd, left], axis=-2)
 
 
+def boxes_overlap(xy_a: Array, fwd_a: Array, half_a: Array, xy_b: Array, fwd_b: Array,
+                  half_b: Array) -> Array:
+  """Oriented-box overlap by the separating axis theorem in closed form, elementwise.
+
+  xy (..., 2) centres, fwd (..., 2) unit headings, half (..., 2) [length, width] / 2; a's and
+  b's arrays broadcast. Returns (...) bool. Cheaper than `pairwise_box_overlap`'s corner
+  projections where a few pairs of many candidates are tested (`joint_selection`).
+  """
+  d = xy_a - xy_b
+  cos = jnp.abs(fwd_a[..., 0] * fwd_b[..., 0] + fwd_a[..., 1] * fwd_b[..., 1])
+  sin = jnp.abs(fwd_a[..., 0] * fwd_b[..., 1] - fwd_a[..., 1] * fwd_b[..., 0])
+  def along(f):                                    # |d . f| and |d . left(f)|
+    return (jnp.abs(d[..., 0] * f[..., 0] + d[..., 1] * f[..., 1]),
+            jnp.abs(d[..., 1] * f[..., 0] - d[..., 0] * f[..., 1]))
+  lon_b, lat_b = along(fwd_b)
+  lon_a, lat_a = along(fwd_a)
+  la, wa, lb, wb = half_a[..., 0], half_a[..., 1], half_b[..., 0], half_b[..., 1]
+  return ((lon_b < lb + la * cos + wa * sin) & (lat_b < wb + la * sin + wa * cos)
+          & (lon_a < la + lb * cos + wb * sin) & (lat_a < wa + lb * sin + wb * cos))
+
+
 def pairwise_box_overlap(x: Array, y: Array, yaw: Array, length: Array, width: Array) -> Array:
   """Exact oriented-box overlap by the separating axis theorem.
 
