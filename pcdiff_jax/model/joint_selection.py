@@ -8,7 +8,9 @@ samples, `PolicyConfig.select_samples`). The objective is
 
 Coll_ij the number of (step, circle pair) overlaps between agent i's
 candidate k_i and agent j's k_j (each agent covered by 3 circles of radius
-width / 2 along its length), minimised approximately by iterated conditional
+width / 2 along its length; with `boxes`, plus one per step where the boxes
+overlap, which catches the corners the circles leave out: docs/RESULTS.md,
+"Ablation: box overlaps in the sample selection"), minimised approximately by iterated conditional
 modes: start from each agent's best unary candidate, then `sweeps` passes over
 the agents in a given order, each taking its best candidate given the others'
 current choices (every update can only lower the objective).
