@@ -58,7 +58,8 @@ class PolicyConfig:
       and synthetic scenes, the other rates level).
     select_boxes: overlaps also count one per step where two samples' boxes overlap, so a
       turning box's corner, which the width / 2 circles miss, is seen ("Ablation: box overlaps
-      in the sample selection": fewer collisions on real and synthetic scenes, no slower).
+      in the sample selection": fewer collisions on real and synthetic scenes, its cost within
+      the benchmark's noise).
 
   Execution (filters on the executed action, `policy.execution`):
     execute: "actions" executes the plan's actions open loop; "track" steers towards the plan's
