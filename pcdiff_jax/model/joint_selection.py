@@ -40,8 +40,9 @@ def collision_counts(xy: Array, yaw: Array, length: Array, width: Array, valid: 
   c = jnp.moveaxis(c, 2, 0).reshape(steps, num * k, 3, 2)                              # (L, P, 3, 2)
   r = jnp.repeat(width / 2.0, k)                                                       # (P,)
   rr2 = (r[:, None] + r[None, :]) ** 2                                                 # (P, P)
-  centre = jnp.moveaxis(xy, 2, 0).reshape(steps, num * k, 2)                           # (L, P, 2)
-  fwd = geometry.unit(jnp.moveaxis(yaw, 2, 0).reshape(steps, num * k))                 # (L, P, 2)
+  # The box test's inputs only where it runs (None: an empty leaf of the scanned tuple).
+  centre = jnp.moveaxis(xy, 2, 0).reshape(steps, num * k, 2) if boxes else None          # (L, P, 2)
+  fwd = geometry.unit(jnp.moveaxis(yaw, 2, 0).reshape(steps, num * k)) if boxes else None  # (L, P, 2)
   half = jnp.repeat(jnp.stack([length, width], -1) / 2.0, k, axis=0)                   # (P, 2)
 
   def per_step(hits, step):
@@ -115,16 +116,16 @@ def near_collision_counts(xy: Array, yaw: Array, length: Array, width: Array, va
   c = jnp.moveaxis(c, 2, 0)                                                         # (L, A, K, 3, 2)
   r = width / 2.0
   rr2 = ((r[:, None] + r[others]) ** 2)[:, None, :, None]                            # (A, 1, M, 1)
-  centre = jnp.moveaxis(xy, 2, 0)                                                   # (L, A, K, 2)
-  fwd = geometry.unit(jnp.moveaxis(yaw, 2, 0))                                      # (L, A, K, 2)
+  centre = jnp.moveaxis(xy, 2, 0) if boxes else None                                 # (L, A, K, 2)
+  fwd = geometry.unit(jnp.moveaxis(yaw, 2, 0)) if boxes else None                    # (L, A, K, 2)
   half = jnp.stack([length, width], -1) / 2.0                                       # (A, 2)
+  half_mine, half_theirs = half[:, None, None, None], half[others][:, None, :, None]  # (A, 1, 1, 1, 2), (A, 1, M, 1, 2)
 
   def per_step(hits, step):
     ct, xyt, ft = step                                                     # (A, K, 3, 2), (A, K, 2) x 2
     if boxes:
-      hits = hits + geometry.boxes_overlap(
-          xyt[:, :, None, None], ft[:, :, None, None], half[:, None, None, None],
-          xyt[others][:, None], ft[others][:, None], half[others][:, None, :, None])
+      hits = hits + geometry.boxes_overlap(xyt[:, :, None, None], ft[:, :, None, None], half_mine,
+                                           xyt[others][:, None], ft[others][:, None], half_theirs)
     # Per step and circle pair one fused elementwise pass over (A, K, M, K): reducing a
     # broadcast (..., L, 3, 3) difference tensor instead was ~8x slower on a CPU.
     mine = ct[:, :, None, None]                                           # (A, K, 1, 1, 3, 2)
