@@ -514,6 +514,26 @@ def test_follow_bound_sees_a_standing_car_by_its_rotated_box():
   assert np.asarray(bound(beside(np.deg2rad(15.0)), go))[0] < 0.0
 
 
+def test_follow_bound_yields_to_a_slow_crosser_its_plan_would_hit():
+  """A car at 5 m/s whose plan keeps its speed and a car creeping north at 1.5 m/s towards its
+  lane 8 m ahead: the plan would meet the creeper's side within 2 s, so the first is bounded
+  (the creeper, which the first passes in front of, is not: of two that meet, the one that
+  would hit the other's side yields, unless the other replays its log); a creeper that has
+  cleared the lane before the car arrives bounds nothing, nor does anything with `crossing`
+  off."""
+  bound = lambda state, **kw: np.asarray(jax.jit(
+      lambda s, p: policy.follow_bound(s, p, (0.5, 4.0), 0.1, **kw))(state, jnp.zeros((4, 80, 2))))
+  scene = lambda y: _follow_scene((5.0, 1.5, 0.0, 0.0), (0.0, 8.0, -50.0, -60.0), (-2.0, y, 2.0, 2.0),
+                                  yaws=(0.0, np.pi / 2, 0.0, 0.0))
+  creeping = bound(scene(-6.0))
+  assert creeping[0] < 0.0 and creeping[1] == np.inf
+  assert bound(scene(-6.0), crossing=False)[0] == np.inf
+  assert bound(scene(2.5))[0] == np.inf   # its side beyond the lane's far edge already
+  # The first car on its log (not a follower): the creeper yields to it, since it will not yield.
+  creeper_only = bound(scene(-6.0), followers=jnp.asarray([False, True, False, False]), max_followers=4)
+  assert creeper_only[1] < np.inf and creeper_only[0] == np.inf
+
+
 def test_follow_bound_searches_leaders_for_the_followers_only():
   """follow_bound with a followers mask (the executed agents): the same bound for each follower
   as over every object, leaders found among all objects, +inf for the others."""
