@@ -172,15 +172,11 @@ def limit_curvature(state: SimulatorState, actions: Array, max_curvature: float,
   return actions.at[:, 1].set(jnp.clip(actions[:, 1], -bound, bound))
 
 
-def planned_path(now: Array, plan: Array, reach: Array, dt: float,
-                 stride: int = FOLLOW_PATH_STRIDE, states: Optional[Array] = None) -> Array:
-  """(F, K + 2, 2) where each follower's remaining plan (F, T, 2) takes it in the world frame
-  from its state now (F, 4): its position now, every `stride`-th planned position, then `reach`
-  (F,) metres straight on from the last one, so that a plan slower than the current speed is
-  still searched as far as the agent needs to stop. states: the plan rolled out from now
-  (F, T, 4), where the caller has it."""
-  if states is None:
-    states = dynamics.rollout(now, plan, dt)                                          # (F, T, 4)
+def planned_path(now: Array, states: Array, reach: Array, stride: int = FOLLOW_PATH_STRIDE) -> Array:
+  """(F, K + 2, 2) where each follower's remaining plan, rolled out from its state now (F, 4)
+  into states (F, T, 4), takes it in the world frame: its position now, every `stride`-th
+  planned position, then `reach` (F,) metres straight on from the last one, so that a plan
+  slower than the current speed is still searched as far as the agent needs to stop."""
   points = states[:, stride - 1::stride]
   last = states[:, -1]
   beyond = last[:, :2] + reach[:, None] * geometry.unit(last[:, dynamics.PSI])
@@ -274,9 +270,9 @@ def follow_bound(state: SimulatorState, plan: Array, follow, dt: float,
   against the path) comes within FOLLOW_SIDE_MARGIN of the follower's half width, that stands
   (below FOLLOW_STILL_SPEED) or heads within 60 degrees of the path. follow: (reaction s,
   braking m/s^2) of `safe_speed`. followers (O,): the objects to bound (+inf elsewhere), at
-  most max_followers (static; any beyond are left unbound) of them; the search is followers x objects x path segments, so bounding only the
-  executed agents halves it on a 128-object scene (docs/BENCHMARKS.md, "The follow bound for
-  the executed agents only"). None: every object.
+  most max_followers (static; any beyond are left unbound) of them; the search is followers x
+  objects x path segments, so bounding only the executed agents halves it on a 128-object scene
+  (docs/BENCHMARKS.md, "The follow bound for the executed agents only"). None: every object.
   crossing: a moving object crossing the path bounds too, as if standing where the plan would
   run into its side (`crossing_gaps`): the plans do not always see a slow crosser (real val: a
   car creeping at 1-2 m/s into the side of one passing in front of it; docs/RESULTS.md,
@@ -297,7 +293,7 @@ def follow_bound(state: SimulatorState, plan: Array, follow, dt: float,
   v = now[index, dynamics.V]                                                          # (F,)
   reach = jnp.maximum(v, 0.0) * reaction + jnp.maximum(v, 0.0) ** 2 / (2.0 * brake) + FOLLOW_MIN_GAP
   states = dynamics.rollout(now[index], plan[index], dt)                              # (F, T, 4)
-  path = planned_path(now[index], plan[index], reach, dt, states=states)
+  path = planned_path(now[index], states, reach)
   xy, yaw, valid = cur.xy[:, 0], cur.yaw[:, 0], cur.valid[:, 0]
   along, lateral, direction = _along_path(path, xy)                                   # (F, O)
   width, length = cur.width[:, 0], cur.length[:, 0]
