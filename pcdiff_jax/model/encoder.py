@@ -204,7 +204,9 @@ def neighbours(centre: Array, valid: Array, k: int) -> tuple[Optional[Array], Ar
   if k <= 0 or k >= n:
     return None, jnp.broadcast_to(valid[None], (n, n))
   centre = jax.lax.stop_gradient(centre)                              # ranks only
-  dist = jnp.sqrt(jnp.sum((centre[:, None] - centre[None]) ** 2, -1))  # (N, N)
+  # x and y apart: faster on a CPU (docs/BENCHMARKS.md, "x and y apart").
+  dx, dy = (centre[:, None, i] - centre[None, :, i] for i in (0, 1))
+  dist = jnp.sqrt(dx ** 2 + dy ** 2)                                  # (N, N)
   # Rank on centimetres, ties by index: rounding noise cannot swap tokens at
   # the same distance (common in regular maps) in and out of the set.
   key = jnp.floor(dist / _DIST_QUANTUM + 0.5)
@@ -221,13 +223,13 @@ def senders(x: Array, idx: Optional[Array]) -> Array:
 
 def relative_pose(centre: Array, direction: Array, idx: Optional[Array], radius: float) -> Array:
   """(N, k, 5) [|p| / radius, cos, sin angle(q_i, p_ij), cos, sin angle(q_i, q_j)]."""
-  p = senders(centre, idx) - centre[:, None]                          # (N, k, 2)
-  qi = direction[:, None]                                             # (N, 1, 2)
-  qj = senders(direction, idx)                                        # (N, k, 2)
-  dist = jnp.sqrt(jnp.sum(p ** 2, -1) + 1e-12)
-  cross = lambda a, b: a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
-  dot = lambda a, b: jnp.sum(a * b, -1)
-  cos_a, sin_a, cos_h, sin_h = dot(qi, p) / dist, cross(qi, p) / dist, dot(qi, qj), cross(qi, qj)
+  # x and y apart (N, k): faster on a CPU (docs/BENCHMARKS.md, "x and y apart").
+  px, py = (senders(centre[:, i], idx) - centre[:, None, i] for i in (0, 1))
+  qx, qy = direction[:, None, 0], direction[:, None, 1]               # (N, 1)
+  jx, jy = senders(direction[:, 0], idx), senders(direction[:, 1], idx)
+  dist = jnp.sqrt(px ** 2 + py ** 2 + 1e-12)
+  cos_a, sin_a = (qx * px + qy * py) / dist, (qx * py - qy * px) / dist
+  cos_h, sin_h = qx * jx + qy * jy, qx * jy - qy * jx
   return jnp.stack(jnp.broadcast_arrays(dist / radius, cos_a, sin_a, cos_h, sin_h), -1)
 
 

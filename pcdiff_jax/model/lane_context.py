@@ -42,17 +42,21 @@ _EDGE_PIECES = 16
 LANE_DIM = 5 * len(LOOKAHEAD) + 4
 
 
-def _rotate(v: Array, agent_dir: Array) -> Array:
-  """Scene-frame vectors (A, ..., 2) into each agent's frame (rotation only); agent_dir (A, 2)."""
-  shape = (agent_dir.shape[0],) + (1,) * (v.ndim - 2)
+def _rotate(vx: Array, vy: Array, agent_dir: Array) -> tuple[Array, Array]:
+  """Scene-frame vectors (A, ...) x and y into each agent's frame (rotation only); agent_dir (A, 2).
+
+  Coordinates travel as separate arrays here: XLA on a CPU is several times slower on arrays
+  that end in a size-2 axis (docs/BENCHMARKS.md, "x and y apart")."""
+  shape = (agent_dir.shape[0],) + (1,) * (vx.ndim - 1)
   c, s = agent_dir[:, 0].reshape(shape), agent_dir[:, 1].reshape(shape)
-  return jnp.stack([c * v[..., 0] + s * v[..., 1], -s * v[..., 0] + c * v[..., 1]], -1)
+  return c * vx + s * vy, -s * vx + c * vy
 
 
-def _nearest_pieces(rel_center: Array, ok: Array, query: Array, k: int) -> tuple[Array, Array]:
-  """The k pieces (A, Q, k) whose centres (A, M, 2, agent frame) are nearest
-  each query point (Q, 2), among `ok` (A, M); and whether each is `ok`."""
-  d2 = jnp.sum((rel_center[:, None, :, :] - query[None, :, None, :]) ** 2, -1)   # (A, Q, M)
+def _nearest_pieces(rel_x: Array, rel_y: Array, ok: Array, query_x: Array, query_y: Array,
+                    k: int) -> tuple[Array, Array]:
+  """The k pieces (A, Q, k) whose centres (rel_x, rel_y: (A, M), agent frame) are nearest
+  each query point (query_x, query_y: (Q,)), among `ok` (A, M); and whether each is `ok`."""
+  d2 = (rel_x[:, None] - query_x[None, :, None]) ** 2 + (rel_y[:, None] - query_y[None, :, None]) ** 2  # (A, Q, M)
   d2 = jnp.where(ok[:, None, :], d2, jnp.inf)
   k = min(k, d2.shape[-1])
   neg, index = jax.lax.top_k(-d2, k)
@@ -63,52 +67,55 @@ def _one_scene(feats: SceneFeatures) -> Array:
   """lane_inputs of one scene (no batch dims): (A, LANE_DIM)."""
   c, d = feats.map_dir[:, None, 0], feats.map_dir[:, None, 1]                 # (M, 1)
   px, py = feats.map_points[..., 0], feats.map_points[..., 1]              # (M, P)
-  points = jnp.stack([feats.map_center[:, None, 0] + c * px - d * py,
-                      feats.map_center[:, None, 1] + d * px + c * py], -1)    # (M, P, 2) scene frame
+  points_x = feats.map_center[:, None, 0] + c * px - d * py                 # (M, P) scene frame
+  points_y = feats.map_center[:, None, 1] + d * px + c * py
   lane = feats.map_valid & (feats.map_kind == MapKind.LANE)                  # (M,)
   edge = feats.map_valid & (feats.map_kind == MapKind.ROAD_EDGE)
-  rel_center = _rotate(feats.map_center[None] - feats.agent_center[:, None], feats.agent_dir)  # (A, M, 2)
+  agent_x, agent_y = feats.agent_center[:, 0], feats.agent_center[:, 1]      # (A,)
+  rel_x, rel_y = _rotate(feats.map_center[None, :, 0] - agent_x[:, None],
+                         feats.map_center[None, :, 1] - agent_y[:, None], feats.agent_dir)   # (A, M)
   # A piece's chord may point away while a segment of a curved piece is still aligned: only
   # pieces that run backwards are left out here; segments are tested one by one below.
-  forward = jnp.sum(feats.map_dir[None] * feats.agent_dir[:, None], -1) >= 0.0   # (A, M)
+  forward = (feats.map_dir[None, :, 0] * feats.agent_dir[:, None, 0]
+             + feats.map_dir[None, :, 1] * feats.agent_dir[:, None, 1]) >= 0.0   # (A, M)
 
-  def segments(index):   # (A, ...) piece indices -> agent-frame segment ends (A, ..., P - 1, 2)
-    centre = feats.agent_center.reshape((-1,) + (1,) * index.ndim + (2,))
-    pts = _rotate(points[index] - centre, feats.agent_dir)
-    return pts[..., :-1, :], pts[..., 1:, :]
+  def segments(index):   # (A, ...) piece indices -> agent-frame segment starts and ends, x and y (A, ..., P - 1)
+    shape = (-1,) + (1,) * index.ndim
+    x, y = _rotate(points_x[index] - agent_x.reshape(shape), points_y[index] - agent_y.reshape(shape),
+                   feats.agent_dir)
+    return x[..., :-1], y[..., :-1], x[..., 1:], y[..., 1:]
 
-  ahead = jnp.stack([jnp.asarray(LOOKAHEAD), jnp.zeros(len(LOOKAHEAD))], -1)   # (L, 2)
-  index, ok = _nearest_pieces(rel_center, lane[None] & forward, ahead, _LANE_PIECES)   # (A, L, k)
-  a, b = segments(index)                                                     # (A, L, k, S, 2)
-  seg = b - a
-  length2 = jnp.maximum(jnp.sum(seg ** 2, -1), 1e-9)
-  heading = seg / jnp.sqrt(length2)[..., None]
-  query = ahead[None, :, None, None, :]
-  u = jnp.clip(jnp.sum((query - a) * seg, -1) / length2, 0.0, 1.0)
-  point = a + u[..., None] * seg
-  gap2 = jnp.sum((point - query) ** 2, -1)                                    # (A, L, k, S)
-  gap2 = jnp.where(ok[..., None] & (heading[..., 0] >= _MIN_ALIGN), gap2, jnp.inf)
-  flat = lambda v: v.reshape(v.shape[:2] + (-1,) + v.shape[4:])               # (A, L, k * S, ...)
-  gap2, point, heading = flat(gap2), flat(point), flat(heading)
-  best = jnp.argmin(gap2, -1)                                                # (A, L)
-  found = jnp.take_along_axis(gap2, best[..., None], -1)[..., 0] <= _MAX_LANE_GAP ** 2
-  at = lambda v: jnp.take_along_axis(v, best[..., None, None], -2)[..., 0, :]
-  lanes = jnp.concatenate([jnp.where(found[..., None], at(point) / _SCALE, 0.0),
-                           jnp.where(found[..., None], at(heading), 0.0),
-                           found[..., None].astype(jnp.float32)], -1)        # (A, L, 5)
+  ahead = jnp.asarray(LOOKAHEAD)                                             # (L,): points (L, 0)
+  index, ok = _nearest_pieces(rel_x, rel_y, lane[None] & forward, ahead, jnp.zeros_like(ahead),
+                              _LANE_PIECES)                                  # (A, L, k)
+  ax, ay, bx, by = segments(index)                                           # (A, L, k, S)
+  sx, sy = bx - ax, by - ay
+  length2 = jnp.maximum(sx ** 2 + sy ** 2, 1e-9)
+  hx, hy = sx / jnp.sqrt(length2), sy / jnp.sqrt(length2)
+  qx = ahead[None, :, None, None]
+  u = jnp.clip(((qx - ax) * sx - ay * sy) / length2, 0.0, 1.0)
+  point_x, point_y = ax + u * sx, ay + u * sy
+  gap2 = (point_x - qx) ** 2 + point_y ** 2                                  # (A, L, k, S)
+  gap2 = jnp.where(ok[..., None] & (hx >= _MIN_ALIGN), gap2, jnp.inf)
+  flat = lambda v: v.reshape(v.shape[:2] + (-1,))                            # (A, L, k * S)
+  best = jnp.argmin(flat(gap2), -1)                                          # (A, L)
+  at = lambda v: jnp.take_along_axis(flat(v), best[..., None], -1)[..., 0]   # (A, L)
+  found = at(gap2) <= _MAX_LANE_GAP ** 2
+  lanes = jnp.stack([jnp.where(found, at(point_x) / _SCALE, 0.0), jnp.where(found, at(point_y) / _SCALE, 0.0),
+                     jnp.where(found, at(hx), 0.0), jnp.where(found, at(hy), 0.0),
+                     found.astype(jnp.float32)], -1)                         # (A, L, 5)
 
   # Road edges: the point of each edge segment nearest the agent's lateral axis (x = 0).
-  index, ok = _nearest_pieces(rel_center, jnp.broadcast_to(edge[None], forward.shape),
-                              jnp.zeros((1, 2)), _EDGE_PIECES)
-  a, b = segments(index[:, 0])                                               # (A, k, S, 2)
-  seg = b - a
-  u = jnp.clip(-a[..., 0] * seg[..., 0] / jnp.where(jnp.abs(seg[..., 0]) > 1e-6, seg[..., 0] ** 2, jnp.inf),
-               0.0, 1.0)
-  beside = a + u[..., None] * seg
-  near = ok[:, 0, :, None] & (jnp.abs(beside[..., 0]) <= _EDGE_WINDOW)      # (A, k, S)
+  index, ok = _nearest_pieces(rel_x, rel_y, jnp.broadcast_to(edge[None], forward.shape),
+                              jnp.zeros(1), jnp.zeros(1), _EDGE_PIECES)
+  ax, ay, bx, by = segments(index[:, 0])                                     # (A, k, S)
+  sx, sy = bx - ax, by - ay
+  u = jnp.clip(-ax * sx / jnp.where(jnp.abs(sx) > 1e-6, sx ** 2, jnp.inf), 0.0, 1.0)
+  beside_x, beside_y = ax + u * sx, ay + u * sy
+  near = ok[:, 0, :, None] & (jnp.abs(beside_x) <= _EDGE_WINDOW)            # (A, k, S)
   parts = [lanes.reshape(lanes.shape[0], -1)]
   for side in (1.0, -1.0):                                                   # left, right
-    lateral = jnp.where(near & (side * beside[..., 1] > 0), side * beside[..., 1], jnp.inf)
+    lateral = jnp.where(near & (side * beside_y > 0), side * beside_y, jnp.inf)
     closest = jnp.min(lateral, (-1, -2))
     has = jnp.isfinite(closest)
     parts += [jnp.where(has, jnp.minimum(closest / _SCALE, 1.0), 1.0)[..., None],

@@ -124,10 +124,11 @@ def decode(latent: Array, stats: LatentStats) -> Array:
 
 
 def rollout(latent: Array, current_speed: Array, stats: LatentStats,
-            cfg: KinematicsConfig = KinematicsConfig()) -> Array:
+            cfg: KinematicsConfig = KinematicsConfig(), steps: Optional[int] = None) -> Array:
   """Decoded actions rolled out with f from [0, 0, 0, v]: (..., d) -> (..., T, 4)
-  agent-frame states [x, y, psi, v]. The actions are clipped to the model's bounds."""
-  actions = dynamics.clip_action(decode(latent, stats), cfg)
+  agent-frame states [x, y, psi, v], or only the first `steps` of them. The actions are
+  clipped to the model's bounds."""
+  actions = dynamics.clip_action(decode(latent, stats), cfg)[..., :steps, :]
   speed = jnp.broadcast_to(current_speed, latent.shape[:-1])
   return dynamics.rollout(initial_states(speed), actions, cfg.dt)
 

@@ -222,9 +222,11 @@ def sample_cold_or_warm(denoiser_params: Any, cond: Conditioning, cfg: Config, r
                                       then_guide_steps=warm_guide_steps, init_noise=init_noise)
 
 
-def decode_states(stats: LatentStats, cond: Conditioning, y0: Array, cfg: Config) -> Array:
-  """(..., A, d) latents -> (..., A, T, 4) agent-frame states [x, y, psi, v]."""
-  return latent.rollout(y0, cond.speed, stats, cfg.kinematics)
+def decode_states(stats: LatentStats, cond: Conditioning, y0: Array, cfg: Config,
+                  steps: Optional[int] = None) -> Array:
+  """(..., A, d) latents -> (..., A, T, 4) agent-frame states [x, y, psi, v] (the first
+  `steps` of them: the rollout is causal)."""
+  return latent.rollout(y0, cond.speed, stats, cfg.kinematics, steps)
 
 
 def to_scene(states: Array, feats: SceneFeatures) -> tuple[Array, Array]:

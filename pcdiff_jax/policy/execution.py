@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from typing import Optional
 
+import jax
 import jax.numpy as jnp
 
 from pcdiff_jax.config import Config
@@ -28,6 +29,7 @@ FOLLOW_PATH_STRIDE = 5        # plan steps per segment of the path searched for 
 FOLLOW_CROSSING_ALIGNED = 0.87  # cos 30 deg: an object heading further off the plan's heading (or its opposite) crosses it
 FOLLOW_CROSSING_STEPS = 20    # plan steps (2 s) over which crossing objects are checked against the plan
 FOLLOW_CROSSING_STRIDE = 2    # plan steps between those checks
+FOLLOW_CROSSING_NEAREST = 16  # moving objects per follower (those that come closest to its plan) checked for a meeting
 
 
 def execute(state: SimulatorState, plan: Array, path: Array, age, policy: PolicyConfig, cfg: Config,
@@ -186,52 +188,61 @@ def planned_path(now: Array, states: Array, reach: Array, stride: int = FOLLOW_P
 def _along_path(path: Array, xy: Array) -> tuple[Array, Array, Array]:
   """Each point xy (O, 2) projected on each path (F, K, 2): the distance along path i to the
   projection, the lateral distance (both (F, O)) and the path's direction there (F, O, 2)."""
-  start, end = path[:, :-1], path[:, 1:]                                              # (F, K-1, 2)
-  seg = end - start
+  start = path[:, :-1]                                                                # (F, K-1, 2)
+  seg = path[:, 1:] - start
   length = jnp.sqrt(jnp.sum(seg ** 2, -1) + 1e-12)                                    # (F, K-1)
   before = jnp.cumsum(length, -1) - length
-  rel = xy[None, :, None] - start[:, None]                                            # (F, O, K-1, 2)
-  t = jnp.clip(jnp.sum(rel * seg[:, None], -1) / length[:, None] ** 2, 0.0, 1.0)
-  lateral = jnp.sqrt(jnp.sum((rel - t[..., None] * seg[:, None]) ** 2, -1) + 1e-12)
+  # x and y apart (F, O, K-1): 3x faster on a CPU (docs/BENCHMARKS.md, "x and y apart").
+  rel_x, rel_y = (xy[None, :, None, i] - start[:, None, :, i] for i in (0, 1))
+  seg_x, seg_y = seg[:, None, :, 0], seg[:, None, :, 1]
+  t = jnp.clip((rel_x * seg_x + rel_y * seg_y) / length[:, None] ** 2, 0.0, 1.0)
+  lateral = jnp.sqrt((rel_x - t * seg_x) ** 2 + (rel_y - t * seg_y) ** 2 + 1e-12)
   k = jnp.argmin(lateral, -1)                                                        # (F, O)
   pick = lambda a: jnp.take_along_axis(a, k[..., None], -1)[..., 0]
   along = pick(before[:, None] + t * length[:, None])
-  unit_seg = jnp.broadcast_to((seg / length[..., None])[:, None], rel.shape)         # (F, O, K-1, 2)
-  direction = jnp.take_along_axis(unit_seg, k[..., None, None], 2)[:, :, 0]
+  direction = jnp.take_along_axis(seg / length[..., None], k[..., None], 1)           # (F, O, 2)
   return along, pick(lateral), direction
 
 
 def crossing_gaps(states: Array, follower: Array, cur, moving: Array, reactive: Array, dt: float,
-                  steps: int = FOLLOW_CROSSING_STEPS, stride: int = FOLLOW_CROSSING_STRIDE) -> Array:
-  """(F, O) how far (m) each follower's plan takes its front before the near side of a crossing
+                  steps: int = FOLLOW_CROSSING_STEPS, stride: int = FOLLOW_CROSSING_STRIDE,
+                  nearest: int = FOLLOW_CROSSING_NEAREST) -> Array:
+  """(F, N) how far (m) each follower's plan takes its front before the near side of a crossing
   object it would run into; +inf for the objects it would not.
 
   states (F, T, 4): each follower's plan rolled out from now; follower (F,): their indices among
   the objects, whose current trajectory is cur (O, 1); moving (O,): the objects to check;
   reactive (O,): those that yield in turn (the others replay their log or ignore us). At
   every `stride`-th plan step within `steps` each of those is put where constant velocity takes
-  it. The pair meets at the first of those steps where their boxes, grown by FOLLOW_MIN_GAP
-  along and FOLLOW_SIDE_MARGIN across each box's heading, overlap (a separating-axis test, so
-  both agents of a pair see the same meeting). The follower yields where the object then heads
-  across its planned heading (30 to 150 degrees) and stands further ahead of the follower than
-  the follower stands ahead of it: the follower's front is at the object's side, not the other
-  way round, so of two agents that meet only one yields. To an object that does not react the
+  it; the N = min(nearest, O) whose centres come closest to the follower's are checked. The
+  pair meets at the first of those steps where their boxes, grown by FOLLOW_MIN_GAP along and
+  FOLLOW_SIDE_MARGIN across each box's heading, overlap (a separating-axis test, so both agents
+  of a pair see the same meeting). The follower yields where the object then heads across its
+  planned heading (30 to 150 degrees) and stands further ahead of the follower than the
+  follower stands ahead of it: the follower's front is at the object's side, not the other way
+  round, so of two agents that meet only one yields. To an object that does not react the
   follower yields wherever the object is ahead of it."""
+  num_objects = moving.shape[0]
   picked = jnp.arange(stride - 1, min(steps, states.shape[1]), stride)                # (J,)
   start = jnp.concatenate([cur.xy[follower, 0][:, None], states[:, :-1, :2]], 1)
   travelled = jnp.cumsum(jnp.sqrt(jnp.sum((states[..., :2] - start) ** 2, -1) + 1e-12), -1)[:, picked]
-  at = states[:, picked]                                                              # (F, J, 4)
+  # x and y apart: faster on a CPU (docs/BENCHMARKS.md, "x and y apart").
+  at_x, at_y, at_yaw = (states[:, picked, i] for i in (dynamics.X, dynamics.Y, dynamics.PSI))  # (F, J)
   seconds = (picked + 1).astype(states.dtype) * dt                                    # (J,)
-  where = cur.xy[:, 0][:, None] + cur.vel_xy[:, 0][:, None] * seconds[None, :, None]  # (O, J, 2)
-  rel = where[None] - at[:, None, :, :2]                                              # (F, O, J, 2)
-  u_f = geometry.unit(at[..., dynamics.PSI])[:, None]                                 # (F, 1, J, 2)
-  u_o = geometry.unit(cur.yaw[:, 0])[None, :, None]                                   # (1, O, 1, 2)
-  cross = lambda u: jnp.abs(rel[..., 0] * u[..., 1] - rel[..., 1] * u[..., 0])
-  ahead_of_f, beside_f = jnp.sum(rel * u_f, -1), cross(u_f)                           # (F, O, J)
-  ahead_of_o, beside_o = -jnp.sum(rel * u_o, -1), cross(u_o)                          # the follower in the object's frame
-  cos = jnp.sum(u_f * u_o, -1)
+  where_x, where_y = (cur.xy[:, 0, i, None] + cur.vel_xy[:, 0, i, None] * seconds for i in (0, 1))  # (O, J)
+  # The box test below costs followers x objects x times: keep the objects that come nearest.
+  closest = jnp.min((where_x[None] - at_x[:, None]) ** 2 + (where_y[None] - at_y[:, None]) ** 2, -1)  # (F, O)
+  candidate = moving[None] & (follower[:, None] != jnp.arange(num_objects)[None])
+  _, near = jax.lax.top_k(jnp.where(candidate, -closest, -jnp.inf), min(nearest, num_objects))  # (F, N)
+  candidate = jnp.take_along_axis(candidate, near, -1)
+  rel_x, rel_y = where_x[near] - at_x[:, None], where_y[near] - at_y[:, None]         # (F, N, J)
+  fx, fy = jnp.cos(at_yaw)[:, None], jnp.sin(at_yaw)[:, None]                         # (F, 1, J)
+  ox, oy = jnp.cos(cur.yaw[near, 0])[..., None], jnp.sin(cur.yaw[near, 0])[..., None]  # (F, N, 1)
+  ahead_of_f, beside_f = rel_x * fx + rel_y * fy, jnp.abs(rel_x * fy - rel_y * fx)    # (F, N, J)
+  ahead_of_o, beside_o = -(rel_x * ox + rel_y * oy), jnp.abs(rel_x * oy - rel_y * ox)  # the follower in the object's frame
+  cos = fx * ox + fy * oy
   sin = jnp.sqrt(jnp.maximum(1.0 - cos ** 2, 0.0))
-  l_o, w_o = cur.length[:, 0][None, :, None], cur.width[:, 0][None, :, None]
+  l_o, w_o = cur.length[near, 0][..., None], cur.width[near, 0][..., None]            # (F, N, 1)
   l_f, w_f = cur.length[follower, 0][:, None, None], cur.width[follower, 0][:, None, None]
   # Each box's half extents along and across the other's heading.
   o_along, o_across = 0.5 * (l_o * jnp.abs(cos) + w_o * sin), 0.5 * (l_o * sin + w_o * jnp.abs(cos))
@@ -240,12 +251,12 @@ def crossing_gaps(states: Array, follower: Array, cur, moving: Array, reactive: 
           & (beside_f < 0.5 * w_f + o_across + FOLLOW_SIDE_MARGIN)
           & (jnp.abs(ahead_of_o) < 0.5 * l_o + f_along + FOLLOW_MIN_GAP)
           & (beside_o < 0.5 * w_o + f_across + FOLLOW_SIDE_MARGIN))
-  first = jnp.argmax(meet, -1)[..., None]                                             # (F, O, 1)
+  first = jnp.argmax(meet, -1)[..., None]                                             # (F, N, 1)
   pick = lambda a: jnp.take_along_axis(a, first, -1)[..., 0]
   gap = pick(ahead_of_f) - 0.5 * l_f[..., 0] - pick(o_along)
   yields = (jnp.any(meet, -1) & (jnp.abs(pick(cos)) <= FOLLOW_CROSSING_ALIGNED)
-            & (pick(ahead_of_f) > 0) & ((pick(ahead_of_o) <= pick(ahead_of_f)) | ~reactive[None])
-            & moving[None] & (follower[:, None] != jnp.arange(moving.shape[0])[None]))
+            & (pick(ahead_of_f) > 0) & ((pick(ahead_of_o) <= pick(ahead_of_f)) | ~reactive[near])
+            & candidate)
   to_meeting = jnp.take_along_axis(jnp.broadcast_to(travelled[:, None], meet.shape), first, -1)[..., 0]
   return jnp.where(yields, to_meeting + gap, jnp.inf)
 
@@ -312,7 +323,7 @@ def follow_bound(state: SimulatorState, plan: Array, follow, dt: float,
   v_safe = jnp.min(jnp.where(leader, v_safe, jnp.inf), -1)                            # (F,)
   if crossing:
     reactive = jnp.ones((num_objects,), bool) if followers is None else followers
-    across = crossing_gaps(states, index, cur, valid & ~still, reactive, dt)          # (F, O)
+    across = crossing_gaps(states, index, cur, valid & ~still, reactive, dt)          # (F, N)
     v_safe = jnp.minimum(v_safe, jnp.min(safe_speed(across, 0.0, reaction, brake), -1))
   types = state.object_metadata.object_types[index]
   wheeled = (types == ObjectType.VEHICLE) | (types == ObjectType.CYCLIST)

@@ -55,7 +55,7 @@ def select_sample(y0: Array, models: Models, cond: planner.Conditioning, batched
   agent's that many nearest agents only (`PolicyConfig.select_neighbours`). held (A,): agents
   the still gate stops, scored where they will be (standing at their start) in every sample.
   boxes: overlaps also count box against box (`joint_selection.collision_counts`)."""
-  states = planner.decode_states(models.stats, cond, y0, cfg)[..., :lookahead:stride, :]   # (S, A, L, 4)
+  states = planner.decode_states(models.stats, cond, y0, cfg, lookahead)[..., ::stride, :]   # (S, A, L, 4)
   if held is not None:
     states = jnp.where(held[None, :, None, None], 0.0, states)
   xy, yaw = planner.to_scene(states, batched)

@@ -69,14 +69,19 @@ def boxes_overlap(xy_a: Array, fwd_a: Array, half_a: Array, xy_b: Array, fwd_b: 
   projections where a few pairs of many candidates are tested (`joint_selection`).
   """
   d = xy_a - xy_b
-  cos = jnp.abs(fwd_a[..., 0] * fwd_b[..., 0] + fwd_a[..., 1] * fwd_b[..., 1])
-  sin = jnp.abs(fwd_a[..., 0] * fwd_b[..., 1] - fwd_a[..., 1] * fwd_b[..., 0])
-  def along(f):                                    # |d . f| and |d . left(f)|
-    return (jnp.abs(d[..., 0] * f[..., 0] + d[..., 1] * f[..., 1]),
-            jnp.abs(d[..., 1] * f[..., 0] - d[..., 0] * f[..., 1]))
-  lon_b, lat_b = along(fwd_b)
-  lon_a, lat_a = along(fwd_a)
-  la, wa, lb, wb = half_a[..., 0], half_a[..., 1], half_b[..., 0], half_b[..., 1]
+  return boxes_overlap_xy(d[..., 0], d[..., 1], fwd_a[..., 0], fwd_a[..., 1], half_a[..., 0], half_a[..., 1],
+                          fwd_b[..., 0], fwd_b[..., 1], half_b[..., 0], half_b[..., 1])
+
+
+def boxes_overlap_xy(dx: Array, dy: Array, ca: Array, sa: Array, la: Array, wa: Array,
+                     cb: Array, sb: Array, lb: Array, wb: Array) -> Array:
+  """`boxes_overlap` on components, all broadcasting (...): centre offset a - b (dx, dy),
+  unit headings (ca, sa) and (cb, sb), half lengths la, lb and half widths wa, wb: XLA on a
+  CPU is several times slower on arrays that end in a size-2 axis (docs/BENCHMARKS.md, "x and y apart")."""
+  cos = jnp.abs(ca * cb + sa * sb)
+  sin = jnp.abs(ca * sb - sa * cb)
+  lon_b, lat_b = jnp.abs(dx * cb + dy * sb), jnp.abs(dy * cb - dx * sb)
+  lon_a, lat_a = jnp.abs(dx * ca + dy * sa), jnp.abs(dy * ca - dx * sa)
   return ((lon_b < lb + la * cos + wa * sin) & (lat_b < wb + la * sin + wa * cos)
           & (lon_a < la + lb * cos + wb * sin) & (lat_a < wa + lb * sin + wb * cos))
 
