@@ -552,6 +552,40 @@ def test_crossing_objects_are_ranked_by_how_near_they_come_to_the_plan():
   assert one.shape == (1, 1) and one[0, 0] == every.min()
 
 
+def test_rear_guard_speeds_up_before_an_object_on_its_log_closing_from_behind():
+  """rear_guard: a car at 5 m/s with a car on its log (not a follower) 10 m behind at 12 m/s
+  gets at least the acceleration that matches that speed before the gap closes, capped at
+  REAR_GUARD_MAX_ACCEL; nothing where the closing car reacts (a follower), drives out of line
+  (the next lane, a parked car it passes), is ahead or more than 4 s away, nor for it. In
+  `execute` the follow bound still wins over it."""
+  from pcdiff_jax.policy import execution
+  state = _follow_scene((5.0, 12.0, 12.0, 0.0), (0.0, -10.0, -10.0, 60.0), (-2.0, -2.0, 2.0, -2.0))
+  mask = lambda *on: jnp.asarray(on)
+  guard = np.asarray(execution.rear_guard(state, mask(True, False, True, True)))
+  assert guard[0] == execution.REAR_GUARD_MAX_ACCEL and np.all(guard[1:] == -np.inf)
+  assert np.all(np.asarray(execution.rear_guard(state, mask(True, True, True, True))) == -np.inf)
+  slow = _follow_scene((5.0, 9.0, 0.0, 0.0), (0.0, -10.0, 40.0, 60.0), (-2.0, -2.0, 2.0, -2.0))
+  need = np.asarray(execution.rear_guard(slow, mask(True, False, True, True)))[0]
+  gap = 10.0 - 0.5 * float(slow.current_sim_trajectory.length[0, 0] + slow.current_sim_trajectory.length[1, 0])
+  np.testing.assert_allclose(need, 4.0 ** 2 / (2.0 * (gap - execution.FOLLOW_MIN_GAP)), rtol=1e-4)
+  far = _follow_scene((5.0, 6.0, 0.0, 0.0), (0.0, -40.0, 40.0, 60.0), (-2.0, -2.0, 2.0, -2.0))
+  assert np.asarray(execution.rear_guard(far, mask(True, False, True, True)))[0] == -np.inf   # 35 s away
+  # A car parked 1.5 m to the side of the closing car's line is passed, not pushed.
+  parked = _follow_scene((0.0, 9.0, 0.0, 0.0), (0.0, -10.0, 40.0, 60.0), (-2.0, -0.5, 2.0, -2.0))
+  assert np.asarray(execution.rear_guard(parked, mask(True, False, True, True)))[0] == -np.inf
+  # A stopped leader 12 m ahead: the follow bound's limit, below the guard's acceleration.
+  boxed = _follow_scene((5.0, 12.0, 0.0, 0.0), (0.0, -10.0, 12.0, 60.0), (-2.0, -2.0, -2.0, 2.0))
+  on = policy.PolicyConfig(rear_guard=True)
+  now, _ = policy.execute(boxed, jnp.zeros((4, 80, 2)), jnp.zeros((4, 80, 2)), 0, on, CFG, jnp.zeros(4),
+                          followers=mask(True, False, True, True))
+  limit = policy.follow_bound(boxed, jnp.zeros((4, 80, 2)), on.follow, 0.1, mask(True, False, True, True),
+                              CFG.features.max_agents)
+  assert float(now[0, 0]) == float(limit[0]) < execution.REAR_GUARD_MAX_ACCEL
+  now, _ = policy.execute(state, jnp.zeros((4, 80, 2)), jnp.zeros((4, 80, 2)), 0, on, CFG, jnp.zeros(4),
+                          followers=mask(True, False, True, True))
+  assert float(now[0, 0]) == execution.REAR_GUARD_MAX_ACCEL
+
+
 def test_follow_bound_searches_leaders_for_the_followers_only():
   """follow_bound with a followers mask (the executed agents): the same bound for each follower
   as over every object, leaders found among all objects, +inf for the others."""

@@ -80,6 +80,10 @@ class PolicyConfig:
       path where its plan would run into the object's side, constant velocity taking the
       object on (`execution.crossing_gaps`; "Ablation: crossing objects in the follow bound":
       fewer collisions on real and synthetic scenes, the other rates level).
+    rear_guard: a vehicle or cyclist accelerates at least as much as keeps it ahead of an object
+      closing on it from behind that replays its log (the SDC, objects beyond the reactive set)
+      and so will not brake for it, up to 2 m/s^2; the follow bound still caps it
+      (`execution.rear_guard`; "Ablation: the rear guard").
     stop_hold: braking ends at standstill, so a stopped car never reverses on plan noise.
     still_gate: (seconds, metres): an agent slower than START_GATE_SPEED whose proposals,
       weighted by probability, carry it less than `metres` within `seconds` is stopped and held
@@ -120,6 +124,7 @@ class PolicyConfig:
   select_held_still: bool = True
   select_boxes: bool = True
   follow_crossing: bool = True
+  rear_guard: bool = False
 
 
 EXECUTE = ("actions", "track")

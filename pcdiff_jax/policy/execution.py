@@ -29,6 +29,8 @@ FOLLOW_PATH_STRIDE = 5        # plan steps per segment of the path searched for 
 FOLLOW_CROSSING_ALIGNED = 0.87  # cos 30 deg: an object heading further off the plan's heading (or its opposite) crosses it
 FOLLOW_CROSSING_STEPS = 20    # plan steps (2 s) over which crossing objects are checked against the plan
 FOLLOW_CROSSING_STRIDE = 2    # plan steps between those checks
+REAR_GUARD_MAX_ACCEL = 2.0   # m/s^2: the most the rear guard asks for
+REAR_GUARD_HORIZON = 4.0     # s: a closing object that reaches the agent later is left alone
 FOLLOW_CROSSING_NEAREST = 16  # moving objects per follower (those that come closest to its plan) checked for a meeting
 
 
@@ -52,6 +54,8 @@ def execute(state: SimulatorState, plan: Array, path: Array, age, policy: Policy
       last_accel = jnp.clip(executed_accel(state, cfg.kinematics.dt), -cfg.kinematics.max_accel,
                             cfg.kinematics.max_accel)
     now = limit_jerk(now, last_accel, policy.jerk_limit, cfg.kinematics.dt)
+  if policy.rear_guard and followers is not None:
+    now = now.at[:, 0].set(jnp.maximum(now[:, 0], rear_guard(state, followers)))
   unbound = now
   if all(policy.follow):
     bound = follow_bound(state, advance_plan(plan, age), policy.follow, cfg.kinematics.dt, followers,
@@ -259,6 +263,35 @@ def crossing_gaps(states: Array, follower: Array, cur, moving: Array, reactive: 
             & candidate)
   to_meeting = jnp.take_along_axis(jnp.broadcast_to(travelled[:, None], meet.shape), first, -1)[..., 0]
   return jnp.where(yields, to_meeting + gap, jnp.inf)
+
+
+def rear_guard(state: SimulatorState, followers: Array) -> Array:
+  """(O,) the least acceleration that keeps each follower (a vehicle or cyclist) ahead of an
+  object closing on it in line from behind that does not react (not among `followers`: it
+  replays its log), -inf elsewhere: enough to reach the object's speed before the gap falls to
+  FOLLOW_MIN_GAP, at most REAR_GUARD_MAX_ACCEL, for objects within REAR_GUARD_HORIZON of it.
+  A slow car of ours ahead of the SDC on its log was run into from behind (real val records 5
+  and 13; docs/RESULTS.md, "Ablation: the rear guard")."""
+  cur = state.current_sim_trajectory
+  x, y, yaw, valid = cur.x[:, 0], cur.y[:, 0], cur.yaw[:, 0], cur.valid[:, 0]
+  fx, fy = jnp.cos(yaw), jnp.sin(yaw)
+  dx, dy = x[None] - x[:, None], y[None] - y[:, None]                                 # (O, O): j from i
+  along = dx * fx[:, None] + dy * fy[:, None]
+  beside = jnp.abs(dy * fx[:, None] - dx * fy[:, None])
+  v = cur.vel_x[:, 0] * fx + cur.vel_y[:, 0] * fy                                     # (O,)
+  u = cur.vel_x[None, :, 0] * fx[:, None] + cur.vel_y[None, :, 0] * fy[:, None]      # j's speed along i
+  length, width = cur.length[:, 0], cur.width[:, 0]
+  gap = -along - 0.5 * (length[:, None] + length[None])
+  closing = u - v[:, None]
+  aligned = fx[:, None] * fx[None] + fy[:, None] * fy[None] > FOLLOW_ALIGNED
+  # In line (centres within half the narrower width): a car passing one parked beside its lane is not behind it.
+  behind = ((along < 0) & (beside < 0.5 * jnp.minimum(width[:, None], width[None])) & aligned & (closing > 0)
+            & (gap < closing * REAR_GUARD_HORIZON) & valid[None] & ~followers[None])
+  need = jnp.minimum(closing ** 2 / (2.0 * jnp.maximum(gap - FOLLOW_MIN_GAP, 0.1)), REAR_GUARD_MAX_ACCEL)
+  types = state.object_metadata.object_types
+  wheeled = (types == ObjectType.VEHICLE) | (types == ObjectType.CYCLIST)
+  bound = jnp.max(jnp.where(behind, need, -jnp.inf), -1)
+  return jnp.where(followers & wheeled & valid, bound, -jnp.inf)
 
 
 def safe_speed(gap: Array, lead_speed: Array, reaction: float, brake: float) -> Array:
