@@ -119,8 +119,9 @@ def near_collision_counts(xy: Array, yaw: Array, length: Array, width: Array, va
   rr2 = ((r[:, None] + r[others]) ** 2)[:, None, :, None]                            # (A, 1, M, 1)
   centre = (jnp.moveaxis(xy[..., 0], 2, 0), jnp.moveaxis(xy[..., 1], 2, 0)) if boxes else None  # (L, A, K) x 2
   fwd = (jnp.moveaxis(jnp.cos(yaw), 2, 0), jnp.moveaxis(jnp.sin(yaw), 2, 0)) if boxes else None
-  half = jnp.stack([length, width], -1) / 2.0                                       # (A, 2)
-  half_mine, half_theirs = half[:, None, None, None], half[others][:, None, :, None]  # (A, 1, 1, 1, 2), (A, 1, M, 1, 2)
+  half_l, half_w = length / 2.0, width / 2.0                                        # (A,)
+  size_mine = lambda a: a[:, None, None, None]                                       # (A, 1, 1, 1)
+  size_theirs = lambda a: a[others][:, None, :, None]                                # (A, 1, M, 1)
 
   def per_step(hits, step):
     (cx, cy), xyt, ft = step                                               # (A, K, 3) x 2, (A, K) x 2 x 2
@@ -128,7 +129,7 @@ def near_collision_counts(xy: Array, yaw: Array, length: Array, width: Array, va
       mine, theirs = lambda a: a[:, :, None, None], lambda a: a[others][:, None]   # (A, K, 1, 1), (A, 1, M, K)
       hits = hits + geometry.boxes_overlap_xy(
           mine(xyt[0]) - theirs(xyt[0]), mine(xyt[1]) - theirs(xyt[1]), mine(ft[0]), mine(ft[1]),
-          half_mine[..., 0], half_mine[..., 1], theirs(ft[0]), theirs(ft[1]), half_theirs[..., 0], half_theirs[..., 1])
+          size_mine(half_l), size_mine(half_w), theirs(ft[0]), theirs(ft[1]), size_theirs(half_l), size_theirs(half_w))
     # Per step and circle pair one fused elementwise pass over (A, K, M, K): reducing a
     # broadcast (..., L, 3, 3) difference tensor instead was ~8x slower on a CPU.
     mine_x, mine_y = cx[:, :, None, None], cy[:, :, None, None]            # (A, K, 1, 1, 3)

@@ -29,9 +29,9 @@ FOLLOW_PATH_STRIDE = 5        # plan steps per segment of the path searched for 
 FOLLOW_CROSSING_ALIGNED = 0.87  # cos 30 deg: an object heading further off the plan's heading (or its opposite) crosses it
 FOLLOW_CROSSING_STEPS = 20    # plan steps (2 s) over which crossing objects are checked against the plan
 FOLLOW_CROSSING_STRIDE = 2    # plan steps between those checks
+FOLLOW_CROSSING_NEAREST = 16  # moving objects per follower (those that come closest to its plan) checked for a meeting
 REAR_GUARD_MAX_ACCEL = 2.0   # m/s^2: the most the rear guard asks for
 REAR_GUARD_HORIZON = 4.0     # s: a closing object that reaches the agent later is left alone
-FOLLOW_CROSSING_NEAREST = 16  # moving objects per follower (those that come closest to its plan) checked for a meeting
 
 
 def execute(state: SimulatorState, plan: Array, path: Array, age, policy: PolicyConfig, cfg: Config,
