@@ -299,7 +299,8 @@ def bench_fused_vs_loop(state, cfg, num_steps: int, repeats: int) -> dict:
                       dataclasses.replace(default, still_gate=(0.0, 0.0), max_curvature=0.0)),
                      ("fused_default_no_follow_ms_per_step", dataclasses.replace(default, follow=(0.0, 0.0))),
                      ("fused_default_circles_ms_per_step", dataclasses.replace(default, select_boxes=False)),
-                     ("fused_default_no_crossing_ms_per_step", dataclasses.replace(default, follow_crossing=False))):
+                     ("fused_default_no_crossing_ms_per_step", dataclasses.replace(default, follow_crossing=False)),
+                     ("fused_default_no_rear_guard_ms_per_step", dataclasses.replace(default, rear_guard=False))):
     act = policy.actor(cfg, pcfg)
     init = jax.jit(act.init)(rng, start)
     row[name] = _compiled_ms(

@@ -501,6 +501,22 @@ def test_follow_bound_brakes_behind_the_leader_on_the_planned_path():
   assert np.asarray(bound(turn, still))[0] == np.inf
 
 
+def test_follow_bound_finds_the_car_ahead_of_a_plan_that_stops_short_of_it():
+  """A car creeping at 1 m/s 1.2 m (bumper to bumper) behind a standing one, whose plan brakes to
+  a stop (or on through zero speed, as a raw plan may) short of it: it is still bounded below
+  zero, since the path is searched as far as its front and a leader's centre and ends where the
+  plan stops; with no car ahead nothing bounds it. A plan that stopped short had let the rear
+  guard's push roll a car into a standing one (docs/RESULTS.md, "Ablation: the follow bound")."""
+  bound = jax.jit(lambda s, p: policy.follow_bound(s, p, (0.5, 4.0), 0.1))
+  queue = _follow_scene((1.0, 0.0, 0.0, 0.0), (0.0, 5.7, -50.0, -60.0), (-2.0, -2.0, 2.0, 2.0))
+  alone = _follow_scene((1.0, 0.0, 0.0, 0.0), (0.0, 40.0, -50.0, -60.0), (-2.0, -2.0, 2.0, 2.0))
+  stop = jnp.zeros((4, 80, 2)).at[0, :10, 0].set(-1.0)            # 1 m/s to 0 in 1 s, then holds
+  through = jnp.zeros((4, 80, 2)).at[0, :, 0].set(-1.0)           # on to -7 m/s: the path doubles back
+  for plan in (stop, through):
+    assert float(bound(queue, plan)[0]) < 0.0
+    assert float(bound(alone, plan)[0]) == np.inf
+
+
 def test_follow_bound_sees_a_standing_car_by_its_rotated_box():
   """A car standing 2.6 m beside the path (centre to centre; 4.5 x 2 m boxes) is passed when it
   stands parallel to the path (0.6 m between the boxes) and braked for when it stands at 15

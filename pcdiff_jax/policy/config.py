@@ -83,8 +83,8 @@ class PolicyConfig:
     rear_guard: a vehicle or cyclist accelerates at least as much as keeps it ahead of an object
       closing on it from behind that replays its log (the SDC, objects beyond the reactive set)
       and so will not brake for it, up to 2 m/s^2; the follow bound still caps it
-      (`execution.rear_guard`; "Ablation: the rear guard": fewer collisions on real val, more
-      on the synthetic splits, so off by default).
+      (`execution.rear_guard`; "Ablation: the rear guard": fewer collisions on real val and
+      on the synthetic splits).
     stop_hold: braking ends at standstill, so a stopped car never reverses on plan noise.
     still_gate: (seconds, metres): an agent slower than START_GATE_SPEED whose proposals,
       weighted by probability, carry it less than `metres` within `seconds` is stopped and held
@@ -125,7 +125,7 @@ class PolicyConfig:
   select_held_still: bool = True
   select_boxes: bool = True
   follow_crossing: bool = True
-  rear_guard: bool = False
+  rear_guard: bool = True
 
 
 EXECUTE = ("actions", "track")

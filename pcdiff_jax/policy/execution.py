@@ -1,8 +1,9 @@
 """Execution: from a plan to the action executed now, through the filters on it.
 
 `execute` takes the plan's current step (or pure pursuit of its path), then, as PolicyConfig
-turns them on, limits the jerk, keeps a wheeled agent able to stop behind the leader on its
-planned path, holds braking at standstill and bounds the curvature; `ensemble_plans` blends
+turns them on, limits the jerk, keeps a wheeled agent ahead of a car on its log closing from
+behind, and able to stop behind the leader on its planned path, holds braking at standstill and
+bounds the curvature; `ensemble_plans` blends
 consecutive plans before that (temporal ensembling). The plan itself is never changed by a
 filter: the next replan starts from the state the filtered action led to.
 """
@@ -30,6 +31,7 @@ FOLLOW_CROSSING_ALIGNED = 0.87  # cos 30 deg: an object heading further off the 
 FOLLOW_CROSSING_STEPS = 20    # plan steps (2 s) over which crossing objects are checked against the plan
 FOLLOW_CROSSING_STRIDE = 2    # plan steps between those checks
 FOLLOW_CROSSING_NEAREST = 16  # moving objects per follower (those that come closest to its plan) checked for a meeting
+FOLLOW_LEADER_HALF_LENGTH = 3.0  # m: how far past the bumper gap the path is searched for a leader's centre
 REAR_GUARD_MAX_ACCEL = 2.0   # m/s^2: the most the rear guard asks for
 REAR_GUARD_HORIZON = 4.0     # s: a closing object that reaches the agent later is left alone
 
@@ -182,7 +184,12 @@ def planned_path(now: Array, states: Array, reach: Array, stride: int = FOLLOW_P
   """(F, K + 2, 2) where each follower's remaining plan, rolled out from its state now (F, 4)
   into states (F, T, 4), takes it in the world frame: its position now, every `stride`-th
   planned position, then `reach` (F,) metres straight on from the last one, so that a plan
-  slower than the current speed is still searched as far as the agent needs to stop."""
+  slower than the current speed is still searched as far as the agent needs to stop. A plan
+  that brakes through zero speed ends where it stopped: execution holds a stop
+  (`hold_at_stop`), and a path that doubled back would put a leader further along it than it is."""
+  reversed_ = jnp.cumsum(states[..., dynamics.V] < 0.0, axis=1) > 0                      # (F, T)
+  stop = jnp.take_along_axis(states, jnp.argmax(reversed_, 1)[:, None, None], 1)       # (F, 1, 4)
+  states = jnp.where(reversed_[..., None], stop, states)
   points = states[:, stride - 1::stride]
   last = states[:, -1]
   beyond = last[:, :2] + reach[:, None] * geometry.unit(last[:, dynamics.PSI])
@@ -335,7 +342,10 @@ def follow_bound(state: SimulatorState, plan: Array, follow, dt: float,
     chosen = jnp.arange(size) < jnp.sum(followers)
   now = dynamics.states_from_trajectory(cur)[:, 0]                                    # (O, 4)
   v = now[index, dynamics.V]                                                          # (F,)
-  reach = jnp.maximum(v, 0.0) * reaction + jnp.maximum(v, 0.0) ** 2 / (2.0 * brake) + FOLLOW_MIN_GAP
+  # Bumper to bumper: past the stopping distance the path must also reach the follower's front
+  # and a leader's centre, or a plan that stops short misses the car it rolls into.
+  reach = (jnp.maximum(v, 0.0) * reaction + jnp.maximum(v, 0.0) ** 2 / (2.0 * brake) + FOLLOW_MIN_GAP
+           + 0.5 * cur.length[index, 0] + FOLLOW_LEADER_HALF_LENGTH)
   states = dynamics.rollout(now[index], plan[index], dt)                              # (F, T, 4)
   path = planned_path(now[index], states, reach)
   xy, yaw, valid = cur.xy[:, 0], cur.yaw[:, 0], cur.valid[:, 0]
