@@ -571,9 +571,9 @@ def test_crossing_objects_are_ranked_by_how_near_they_come_to_the_plan():
 def test_rear_guard_speeds_up_before_an_object_on_its_log_closing_from_behind():
   """rear_guard: a car at 5 m/s with a car on its log (not a follower) 10 m behind at 12 m/s
   gets at least the acceleration that matches that speed before the gap closes, capped at
-  REAR_GUARD_MAX_ACCEL; nothing where the closing car reacts (a follower), drives out of line
-  (the next lane, a parked car it passes), is ahead or more than 4 s away, nor for it. In
-  `execute` the follow bound still wins over it."""
+  REAR_GUARD_MAX_ACCEL, passed on to a car of ours close ahead of it; nothing where the closing
+  car reacts (a follower), drives out of line (the next lane, a parked car it passes), is ahead
+  or more than 4 s away, nor for it. In `execute` the follow bound still wins over it."""
   from pcdiff_jax.policy import execution
   state = _follow_scene((5.0, 12.0, 12.0, 0.0), (0.0, -10.0, -10.0, 60.0), (-2.0, -2.0, 2.0, -2.0))
   mask = lambda *on: jnp.asarray(on)
@@ -586,6 +586,12 @@ def test_rear_guard_speeds_up_before_an_object_on_its_log_closing_from_behind():
   np.testing.assert_allclose(need, 4.0 ** 2 / (2.0 * (gap - execution.FOLLOW_MIN_GAP)), rtol=1e-4)
   far = _follow_scene((5.0, 6.0, 0.0, 0.0), (0.0, -40.0, 40.0, 60.0), (-2.0, -2.0, 2.0, -2.0))
   assert np.asarray(execution.rear_guard(far, mask(True, False, True, True)))[0] == -np.inf   # 35 s away
+  # A queue of ours: the push passes to the car 3 m ahead of the pushed one, not to one 20 m ahead.
+  queue = lambda lead_x: _follow_scene((5.0, 5.0, 12.0, 0.0), (lead_x, 0.0, -10.0, 60.0), (-2.0, -2.0, -2.0, 2.0))
+  near = np.asarray(execution.rear_guard(queue(7.5), mask(True, True, False, True)))
+  assert near[1] > 0.0 and near[0] == near[1]
+  far = np.asarray(execution.rear_guard(queue(24.5), mask(True, True, False, True)))
+  assert far[1] == near[1] and far[0] == -np.inf
   # A car parked 1.5 m to the side of the closing car's line is passed, not pushed.
   parked = _follow_scene((0.0, 9.0, 0.0, 0.0), (0.0, -10.0, 40.0, 60.0), (-2.0, -0.5, 2.0, -2.0))
   assert np.asarray(execution.rear_guard(parked, mask(True, False, True, True)))[0] == -np.inf

@@ -34,6 +34,8 @@ FOLLOW_CROSSING_NEAREST = 16  # moving objects per follower (those that come clo
 FOLLOW_LEADER_HALF_LENGTH = 3.0  # m: how far past the bumper gap the path is searched for a leader's centre
 REAR_GUARD_MAX_ACCEL = 2.0   # m/s^2: the most the rear guard asks for
 REAR_GUARD_HORIZON = 4.0     # s: a closing object that reaches the agent later is left alone
+REAR_GUARD_QUEUE_GAP = 12.0  # m: a car of ours this close (bumper to bumper) behind in line passes its push on
+REAR_GUARD_QUEUE_HOPS = 4    # cars up a queue a push is passed through
 
 
 def execute(state: SimulatorState, plan: Array, path: Array, age, policy: PolicyConfig, cfg: Config,
@@ -276,7 +278,8 @@ def rear_guard(state: SimulatorState, followers: Array) -> Array:
   """(O,) the least acceleration that keeps each follower (a vehicle or cyclist) ahead of an
   object closing on it in line from behind that does not react (not among `followers`: it
   replays its log), -inf elsewhere: enough to reach the object's speed before the gap falls to
-  FOLLOW_MIN_GAP, at most REAR_GUARD_MAX_ACCEL, for objects within REAR_GUARD_HORIZON of it.
+  FOLLOW_MIN_GAP, at most REAR_GUARD_MAX_ACCEL, for objects within REAR_GUARD_HORIZON of it;
+  passed on to the follower ahead of a pushed one, up to REAR_GUARD_QUEUE_HOPS cars up a queue.
   A slow car of ours ahead of the SDC on its log was run into from behind (real val records 5
   and 13; docs/RESULTS.md, "Ablation: the rear guard")."""
   cur = state.current_sim_trajectory
@@ -297,8 +300,15 @@ def rear_guard(state: SimulatorState, followers: Array) -> Array:
   need = jnp.minimum(closing ** 2 / (2.0 * jnp.maximum(gap - FOLLOW_MIN_GAP, 0.1)), REAR_GUARD_MAX_ACCEL)
   types = state.object_metadata.object_types
   wheeled = (types == ObjectType.VEHICLE) | (types == ObjectType.CYCLIST)
-  bound = jnp.max(jnp.where(behind, need, -jnp.inf), -1)
-  return jnp.where(followers & wheeled & valid, bound, -jnp.inf)
+  pushed = followers & wheeled & valid
+  own = jnp.where(pushed, jnp.max(jnp.where(behind, need, -jnp.inf), -1), -jnp.inf)
+  # A push passes up a queue of ours: a car with a pushed car of ours close behind it in line
+  # makes room as fast, or the follow bound holds the pushed one behind it (real val record 13).
+  queue = ((along < 0) & (beside < 0.5 * jnp.minimum(width[:, None], width[None])) & aligned
+           & (gap < REAR_GUARD_QUEUE_GAP) & pushed[None] & pushed[:, None]
+           & ~jnp.eye(x.shape[0], dtype=bool))
+  passed_on = lambda _, a: jnp.maximum(a, jnp.max(jnp.where(queue, a[None], -jnp.inf), -1))
+  return jax.lax.fori_loop(0, REAR_GUARD_QUEUE_HOPS, passed_on, own)
 
 
 def safe_speed(gap: Array, lead_speed: Array, reaction: float, brake: float) -> Array:
