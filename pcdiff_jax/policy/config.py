@@ -82,9 +82,9 @@ class PolicyConfig:
       fewer collisions on real and synthetic scenes, the other rates level).
     rear_guard: a vehicle or cyclist accelerates at least as much as keeps it ahead of an object
       closing on it from behind that replays its log (the SDC, objects beyond the reactive set)
-      and so will not brake for it, up to 2 m/s^2; the follow bound still caps it
-      (`execution.rear_guard`; "Ablation: the rear guard": fewer collisions on real val and
-      on the synthetic splits).
+      and so will not brake for it, up to 2 m/s^2, and so does a queue of ours ahead of it; the
+      follow bound still caps it (`execution.rear_guard`; "Ablation: the rear guard": fewer
+      collisions on real val and on the synthetic splits).
     stop_hold: braking ends at standstill, so a stopped car never reverses on plan noise.
     still_gate: (seconds, metres): an agent slower than START_GATE_SPEED whose proposals,
       weighted by probability, carry it less than `metres` within `seconds` is stopped and held
