@@ -295,8 +295,8 @@ def rear_guard(state: SimulatorState, followers: Array) -> Array:
   closing = u - v[:, None]
   aligned = fx[:, None] * fx[None] + fy[:, None] * fy[None] > FOLLOW_ALIGNED
   # In line (centres within half the narrower width): a car passing one parked beside its lane is not behind it.
-  behind = ((along < 0) & (beside < 0.5 * jnp.minimum(width[:, None], width[None])) & aligned & (closing > 0)
-            & (gap < closing * REAR_GUARD_HORIZON) & valid[None] & ~followers[None])
+  in_line_behind = (along < 0) & (beside < 0.5 * jnp.minimum(width[:, None], width[None])) & aligned & valid[None]
+  behind = in_line_behind & (closing > 0) & (gap < closing * REAR_GUARD_HORIZON) & ~followers[None]
   need = jnp.minimum(closing ** 2 / (2.0 * jnp.maximum(gap - FOLLOW_MIN_GAP, 0.1)), REAR_GUARD_MAX_ACCEL)
   types = state.object_metadata.object_types
   wheeled = (types == ObjectType.VEHICLE) | (types == ObjectType.CYCLIST)
@@ -304,9 +304,7 @@ def rear_guard(state: SimulatorState, followers: Array) -> Array:
   own = jnp.where(pushed, jnp.max(jnp.where(behind, need, -jnp.inf), -1), -jnp.inf)
   # A push passes up a queue of ours: a car with a pushed car of ours close behind it in line
   # makes room as fast, or the follow bound holds the pushed one behind it (real val record 13).
-  queue = ((along < 0) & (beside < 0.5 * jnp.minimum(width[:, None], width[None])) & aligned
-           & (gap < REAR_GUARD_QUEUE_GAP) & pushed[None] & pushed[:, None]
-           & ~jnp.eye(x.shape[0], dtype=bool))
+  queue = in_line_behind & (gap < REAR_GUARD_QUEUE_GAP) & pushed[None] & pushed[:, None]
   passed_on = lambda _, a: jnp.maximum(a, jnp.max(jnp.where(queue, a[None], -jnp.inf), -1))
   return jax.lax.fori_loop(0, REAR_GUARD_QUEUE_HOPS, passed_on, own)
 
