@@ -572,8 +572,8 @@ def test_rear_guard_speeds_up_before_an_object_on_its_log_closing_from_behind():
   """rear_guard: a car at 5 m/s with a car on its log (not a follower) 10 m behind at 12 m/s
   gets at least the acceleration that matches that speed before the gap closes, capped at
   REAR_GUARD_MAX_ACCEL, passed on to a car of ours close ahead of it; nothing where the closing
-  car reacts (a follower), drives out of line (the next lane, a parked car it passes), is ahead
-  or more than 4 s away, nor for it. In `execute` the follow bound still wins over it."""
+  car reacts (a follower), drives out of line (the next lane; a parked car its centre passes
+  beside), is ahead or more than 4 s away, nor for it. In `execute` the follow bound still wins over it."""
   from pcdiff_jax.policy import execution
   state = _follow_scene((5.0, 12.0, 12.0, 0.0), (0.0, -10.0, -10.0, 60.0), (-2.0, -2.0, 2.0, -2.0))
   mask = lambda *on: jnp.asarray(on)
@@ -592,9 +592,12 @@ def test_rear_guard_speeds_up_before_an_object_on_its_log_closing_from_behind():
   assert near[1] > 0.0 and near[0] == near[1]
   far = np.asarray(execution.rear_guard(queue(24.5), mask(True, True, False, True)))
   assert far[1] == near[1] and far[0] == -np.inf
-  # A car parked 1.5 m to the side of the closing car's line is passed, not pushed.
-  parked = _follow_scene((0.0, 9.0, 0.0, 0.0), (0.0, -10.0, 40.0, 60.0), (-2.0, -0.5, 2.0, -2.0))
-  assert np.asarray(execution.rear_guard(parked, mask(True, False, True, True)))[0] == -np.inf
+  # 1.2 m to the side of the closing car's line, a car at 2 m/s is pushed (the 2 m wide boxes meet
+  # sideways); a parked one is not (drivers steer round it), nor one 2.5 m to the side.
+  beside = lambda v, y: np.asarray(execution.rear_guard(_follow_scene(
+      (v, 9.0, 0.0, 0.0), (0.0, -10.0, 40.0, 60.0), (-2.0, y, 2.0, -2.0)), mask(True, False, True, True)))[0]
+  assert beside(2.0, -0.8) > 0.0 and beside(2.0, 0.5) == -np.inf
+  assert beside(0.0, -0.8) == -np.inf and beside(0.0, -2.0) > 0.0
   # A stopped leader 12 m ahead: the follow bound's limit, below the guard's acceleration.
   boxed = _follow_scene((5.0, 12.0, 0.0, 0.0), (0.0, -10.0, 12.0, 60.0), (-2.0, -2.0, -2.0, 2.0))
   on = policy.PolicyConfig(rear_guard=True)

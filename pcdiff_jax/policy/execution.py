@@ -294,8 +294,12 @@ def rear_guard(state: SimulatorState, followers: Array) -> Array:
   gap = -along - 0.5 * (length[:, None] + length[None])
   closing = u - v[:, None]
   aligned = fx[:, None] * fx[None] + fy[:, None] * fy[None] > FOLLOW_ALIGNED
-  # In line (centres within half the narrower width): a car passing one parked beside its lane is not behind it.
-  in_line_behind = (along < 0) & (beside < 0.5 * jnp.minimum(width[:, None], width[None])) & aligned & valid[None]
+  # In line: a moving car's box overlaps the closing one's sideways, so that driving on they meet
+  # (real val record 13: 1 m to the side); a still car's centre is within half the narrower width
+  # (drivers steer round parked cars; real val record 3).
+  in_line = jnp.where(v[:, None] > FOLLOW_STILL_SPEED, 0.5 * (width[:, None] + width[None]),
+                      0.5 * jnp.minimum(width[:, None], width[None]))
+  in_line_behind = (along < 0) & (beside < in_line) & aligned & valid[None]
   behind = in_line_behind & (closing > 0) & (gap < closing * REAR_GUARD_HORIZON) & ~followers[None]
   need = jnp.minimum(closing ** 2 / (2.0 * jnp.maximum(gap - FOLLOW_MIN_GAP, 0.1)), REAR_GUARD_MAX_ACCEL)
   types = state.object_metadata.object_types
