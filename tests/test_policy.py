@@ -573,7 +573,8 @@ def test_rear_guard_speeds_up_before_an_object_on_its_log_closing_from_behind():
   gets at least the acceleration that matches that speed before the gap closes, capped at
   REAR_GUARD_MAX_ACCEL, passed on to a car of ours close ahead of it; nothing where the closing
   car reacts (a follower), drives out of line (the next lane; a parked car its centre passes
-  beside), is ahead or more than 4 s away, nor for it. In `execute` the follow bound still wins over it."""
+  beside), is ahead or more than 4 s away, nor for it. In `execute` the follow bound still wins
+  over it."""
   from pcdiff_jax.policy import execution
   state = _follow_scene((5.0, 12.0, 12.0, 0.0), (0.0, -10.0, -10.0, 60.0), (-2.0, -2.0, 2.0, -2.0))
   mask = lambda *on: jnp.asarray(on)

@@ -276,9 +276,11 @@ def crossing_gaps(states: Array, follower: Array, cur, moving: Array, reactive: 
 
 def rear_guard(state: SimulatorState, followers: Array) -> Array:
   """(O,) the least acceleration that keeps each follower (a vehicle or cyclist) ahead of an
-  object closing on it in line from behind that does not react (not among `followers`: it
-  replays its log), -inf elsewhere: enough to reach the object's speed before the gap falls to
-  FOLLOW_MIN_GAP, at most REAR_GUARD_MAX_ACCEL, for objects within REAR_GUARD_HORIZON of it;
+  object closing on it in line from behind (for a follower faster than FOLLOW_STILL_SPEED the
+  boxes overlap sideways, for a slower one the centres are within half the narrower width) that
+  does not react (not among `followers`: it replays its log), -inf elsewhere: enough to reach
+  the object's speed before the gap falls to FOLLOW_MIN_GAP, at most REAR_GUARD_MAX_ACCEL, for
+  objects within REAR_GUARD_HORIZON of it;
   passed on to the follower ahead of a pushed one, up to REAR_GUARD_QUEUE_HOPS cars up a queue.
   A slow car of ours ahead of the SDC on its log was run into from behind (real val records 5
   and 13; docs/RESULTS.md, "Ablation: the rear guard")."""
