@@ -28,7 +28,7 @@ class KinematicsConfig:
 class MetricsConfig:
   """Which agents are evaluated and how events are counted."""
   max_reactive_agents: int = 64    # nearest the SDC, SDC excluded from evaluation
-  max_road_edge_points: int = 4096  # nearest road-edge samples kept for off-road checks
+  max_road_edge_points: int = 512   # road-edge samples searched per object and second (`offroad`)
 
 
 @dataclasses.dataclass(frozen=True)

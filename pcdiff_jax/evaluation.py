@@ -364,7 +364,7 @@ def evaluate(scenarios: Sequence[str] | str, out_dir: str, cfg: EvalConfig,
         skipped += [{"scenario_id": None, "path": e.path, "record": e.index, "error": str(e)}
                     for e in load_errors]
       if scores_seed:
-        stacked = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *scores_seed)
+        stacked = metrics_lib.concatenate_scores(scores_seed)
         per_seed.append(metrics_lib.aggregate(stacked))
   if not per_seed:
     raise RuntimeError(f"no scenario could be evaluated; skipped: {skipped}")

@@ -103,7 +103,7 @@ def adversarial_scores(final_state: SimulatorState, start_step: int, adversary: 
   dist = jnp.linalg.norm(pair.xy[1] - pair.xy[0], axis=-1)
   min_distance = jnp.min(jnp.where(both & after, dist, jnp.inf))
   adv_traj = jax.tree_util.tree_map(lambda a: a[1:2], pair)
-  off = sim_metrics.offroad(adv_traj, final_state.roadgraph_points, pair.xy[1, 0], max_road_edge_points)[0]
+  off = sim_metrics.offroad(adv_traj, final_state.roadgraph_points, max_road_edge_points)[0]
   is_vehicle = final_state.object_metadata.object_types[adv] == 1
   collided = has_pair & jnp.any(contact)
   return AdversarialScores(
@@ -245,3 +245,17 @@ def aggregate(scores: RolloutScores) -> dict[str, float]:
   if scores.adversarial is not None:
     out.update(aggregate_adversarial(scores.adversarial))
   return out
+
+
+_PER_OBJECT = ("ade", "ade_valid", "controlled", "lost", "log_following", "still", "still_moved")
+
+
+def concatenate_scores(parts: list[RolloutScores]) -> RolloutScores:
+  """Scores of several calls along the scenario axis. Calls whose scenes hold
+  more objects (a scene over 128 objects loads at 256) have a longer object
+  axis: the per-object fields are padded with zeros (not evaluated, not
+  controlled), which leaves every rate and mean of `aggregate` unchanged."""
+  width = max(np.shape(p.ade)[-1] for p in parts)
+  pad = lambda a: np.pad(a, [(0, 0)] * (a.ndim - 1) + [(0, width - a.shape[-1])])
+  parts = [p.replace(**{k: pad(np.asarray(getattr(p, k))) for k in _PER_OBJECT}) for p in parts]
+  return jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *parts)

@@ -60,6 +60,30 @@ def test_collisions_with_objects_replaying_their_log_are_counted_apart():
   assert int(count(jnp.arange(4) == 1).collided_with_replayed) == 0   # agent 1 is nobody's partner
 
 
+def _two_roads(state, offset: float = 100.0):
+  """The scene's roadgraph and a copy of it `offset` m to the left (+y): two parallel roads."""
+  rg = state.roadgraph_points
+  far = rg.replace(y=rg.y + offset, ids=rg.ids + 10)
+  return jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), rg, far)
+
+
+def test_offroad_finds_the_nearest_edge_of_objects_far_apart():
+  """Three cars on one road and one on a parallel road 100 m away, each tested
+  against only the 64 road-edge samples nearest it: none is off the road until
+  the far one steers 6 m to the side, across its edge, and the flags equal those of a search
+  of every sample. (A crop of the samples nearest the cars' centroid holds only
+  the first road's edges, and judged the far car, beyond them, off the road.)"""
+  state = make_scene(speeds=(5.0, 5.0, 5.0, 5.0), xs=(-20.0, 0.0, 10.0, 0.0), ys=(-2.0, 2.0, -2.0, 98.0))
+  traj, rg = state.log_trajectory, _two_roads(state)
+  off = metrics.offroad(traj, rg, max_edge_points=64)
+  assert not bool(jnp.any(off))
+  t = jnp.arange(traj.num_timesteps)
+  swerve = traj.replace(y=traj.y.at[3].add(jnp.where(t >= 20, 6.0, 0.0)))
+  off = metrics.offroad(swerve, rg, max_edge_points=64)
+  assert off[3].tolist() == (t >= 20).tolist() and not bool(jnp.any(off[:3]))
+  assert off.tolist() == metrics.offroad(swerve, rg, max_edge_points=rg.num_points).tolist()
+
+
 def test_pairs_overlapping_at_start_are_not_collisions():
   s = make_scene(xs=(0.0, 0.0, 10.0, -2.0), speeds=(10.0, 8.0, 0.0, 10.0))  # 3 overlaps the SDC from the start
   c = _counts(s, s.log_trajectory, k=4)
@@ -171,3 +195,27 @@ def test_still_moved_rate_counts_still_agents_driven_away():
   replay = state.replace(timestep=jnp.int32(start + steps))
   out = metrics_lib.aggregate(batch(score(replay, start, steps, 3, 256)))
   assert out["num_still_agents"] == 2 and out["still_moved_rate"] == 0.0
+
+
+def test_scores_of_scenes_with_different_object_counts_concatenate():
+  """A file mixing scenes loaded at different object capacities (128 and 256 on
+  real WOMD) aggregates: the per-object fields are zero-padded, and the pooled
+  rates and means equal those counted scene by scene."""
+  from pcdiff_jax import metrics as metrics_lib
+  score = jax.jit(metrics_lib.score_rollout, static_argnums=(1, 2, 3, 4))
+  batch = lambda s: jax.tree_util.tree_map(lambda a: np.asarray(a)[None, None], s)
+  small = make_scene(speeds=(10.0, 8.0, 0.0, 0.0), xs=(0.0, 0.0, 10.0, -30.0))
+  sim = small.log_trajectory
+  small = small.replace(sim_trajectory=sim.replace(x=sim.x.at[2].add(3.0 * (jnp.arange(sim.num_timesteps) > 5))))
+  big = make_scene(num_objects=6, speeds=(10.0, 8.0, 0.0, 0.0, 5.0, 0.0), ys=(-2.0, 2.0, -6.5, -2.0, 2.0, -2.0),
+                   xs=(0.0, 0.0, 10.0, -30.0, 40.0, 60.0))
+  parts = [batch(score(s.replace(timestep=jnp.int32(25)), 5, 20, 4, 256)) for s in (small, big)]
+  assert parts[0].ade.shape[-1] == 4 and parts[1].ade.shape[-1] == 6
+  out = metrics_lib.aggregate(metrics_lib.concatenate_scores(parts))
+  alone = [metrics_lib.aggregate(p) for p in parts]
+  assert out["num_still_agents"] == sum(a["num_still_agents"] for a in alone) == 4
+  assert out["still_moved_rate"] == 0.25
+  assert out["num_ade_agents"] == sum(a["num_ade_agents"] for a in alone)
+  assert out["controlled_agents"] == sum(a["controlled_agents"] for a in alone)
+  n = [a["num_ade_agents"] for a in alone]
+  assert np.isclose(out["min_ade"], (alone[0]["min_ade"] * n[0] + alone[1]["min_ade"] * n[1]) / sum(n))
