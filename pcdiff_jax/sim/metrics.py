@@ -85,11 +85,12 @@ def offroad(traj: Trajectory, roadgraph: RoadgraphPoints,
   """(..., O, T) bool: some box corner is off the road (positive signed distance).
 
   Each object's corners over each `chunk_steps` steps are tested against the
-  `max_edge_points` road-edge samples nearest its mean centre over those steps:
-  the nearest sample of every corner is among them, on any map size, so the
-  test is Waymax's (every sample searched) at a fraction of the cost. A crop
-  around one point of the scene marked cars far from it off the road (docs/
-  RESULTS.md, "Our metrics against Waymax's"). Invalid steps are False.
+  `max_edge_points` road-edge samples nearest its mean centre over those steps,
+  which hold each corner's nearest sample unless an object crosses more than
+  that many samples' span in one chunk: on every real val and train rollout the
+  flags equal a search of every sample (Waymax's test), at less cost. A crop
+  around one point of the scene misjudged cars far from it (docs/RESULTS.md,
+  "Our metrics against Waymax's"). Invalid steps are False.
   """
   if traj.x.ndim > 2:   # leading batch dims
     batched_map = 0 if roadgraph.x.ndim > 1 else None
