@@ -45,6 +45,18 @@ def add_map_flags(p: argparse.ArgumentParser, pieces: Optional[int] = None, why:
                       "modelled agent")
 
 
+def add_start_flags(p: argparse.ArgumentParser) -> None:
+  """Where a simulated method starts (`EvalConfig.fit_start_velocity`)."""
+  p.add_argument("--start-velocity", default="positions", choices=("positions", "tracked"),
+                 help="simulated methods: start an object whose tracked velocity is more than 2 m/s off its "
+                      "last 0.5 s of positions at the positions' velocity (default), or at the tracked one")
+
+
+def start_options(args: argparse.Namespace) -> dict:
+  """{fit_start_velocity} for EvalConfig from --start-velocity."""
+  return {"fit_start_velocity": args.start_velocity == "positions"}
+
+
 def map_crop(p: argparse.ArgumentParser, args: argparse.Namespace) -> dict:
   """{map_pieces, map_anchor} for EvalConfig; a usage error (exit 2) for a bad count."""
   if args.map_pieces is not None and args.map_pieces < 1:

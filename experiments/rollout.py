@@ -35,6 +35,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                  help="the SDC's fixed policy: log replay (default) or IDM")
   _args.add_policy_flags(p)
   _args.add_map_flags(p)
+  _args.add_start_flags(p)
   p.add_argument("--simpl-ar-sample", action="store_true",
                  help="simpl-ar: draw each agent's mode by its probability (default: the top mode)")
   p.add_argument("--num-rollouts", type=int, default=1,
@@ -109,6 +110,7 @@ def main(argv=None) -> int:
                               seeds=args.seeds, num_steps=args.num_steps, batch_size=args.batch_size,
                               gifs=args.gifs, seed=args.seed, score_adversary=args.score_adversary,
                               max_scenarios=args.max_scenarios, simpl_ar_sample=args.simpl_ar_sample, **args.map_crop,
+                              **_args.start_options(args),
                               metrics=MetricsConfig(max_reactive_agents=args.max_agents),
                               guidance=GuidanceConfig(
                                   mode=args.guidance, w_map=args.w_map, w_coll=args.w_coll,

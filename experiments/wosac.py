@@ -93,6 +93,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                       "sized; slower on small scenes)")
   _args.add_policy_flags(p)
   _args.add_map_flags(p, wosac.EXPORT_MAP_PIECES, why=": WOSAC level with 256 at 1.2x the speed")
+  _args.add_start_flags(p)
   p.add_argument("--guidance", default="none", choices=("none", "objective"),
                  help="pcdiff: objective guidance (map and collision costs) with its default weights")
   p.add_argument("--num-rollouts", type=int, default=submission.NUM_ROLLOUTS,
@@ -350,7 +351,7 @@ def _main(argv=None) -> int:
     pcfg = args.policy_config
     ev = evaluation.EvalConfig(method=args.method, checkpoint=args.checkpoint, policy=pcfg, seed=args.seed,
                                metrics=MetricsConfig(max_reactive_agents=args.max_agents), guidance=guidance,
-                               **args.map_crop)
+                               **args.map_crop, **_args.start_options(args))
     cfg = wosac.WosacConfig(eval=ev, ego=args.ego, num_rollouts=args.num_rollouts,
                             rollouts_per_call=args.rollouts_per_call, max_objects=args.max_objects,
                             size_plans=not args.full_plans)

@@ -60,7 +60,9 @@ class EvalConfig:
   scenarios of the files only. simpl_ar_sample: SIMPL-AR draws its modes by
   their probabilities instead of taking the top mode. align_headings: a simulated
   method starts from box headings aligned with the motion where the log's disagree
-  (`env.align_headings`); log replay replays the log as it is.
+  (`env.align_headings`); fit_start_velocity: it starts from the velocity of an object's
+  last 0.5 s of positions where its tracked one is more than 2 m/s off it
+  (`env.fit_current_velocity`); log replay replays the log as it is.
 
   The learned methods model up to `metrics.max_reactive_agents` + 1 agents
   (the SDC and every evaluated agent), whatever cap they were trained with,
@@ -87,6 +89,7 @@ class EvalConfig:
   max_scenarios: Optional[int] = None
   simpl_ar_sample: bool = False
   align_headings: bool = True
+  fit_start_velocity: bool = True
   map_pieces: Optional[int] = None
   map_anchor: Optional[str] = None
 
@@ -172,9 +175,10 @@ def make_rollout_fn(actor: Actor, cfg: EvalConfig, mesh: Optional[Mesh] = None,
   what depends on the scene alone (the policy's road field, the map's arcs)
   is then computed once per call instead of once per rollout."""
   align = cfg.align_headings and cfg.method != "log"
+  fit_velocity = cfg.fit_start_velocity and cfg.method != "log"
 
   def one(state, rng, params):
-    start = env.simulated_start(state, cfg.init_steps, align)
+    start = env.simulated_start(state, cfg.init_steps, align, fit_velocity)
     return env.rollout(start, actor, cfg.num_steps, rng, params=params).final_state
   fn = jax.vmap(one, in_axes=(None if one_scene else 0, 0, None))
   if mesh is None:

@@ -82,7 +82,7 @@ def test_rollout_help_is_short_and_lists_the_policy_fields(capsys):
   text = capsys.readouterr().out
   assert "select_samples=8" in text and "still_gate=2.0,1.0" in text and "--select-samples" not in text
   options = [line for line in text.splitlines() if line.startswith("  -")]
-  assert len(options) <= 36, options   # 52 with one flag per policy field
+  assert len(options) <= 37, options   # 52 with one flag per policy field
 
 
 def test_wosac_takes_the_same_policy_options(tmp_path, capsys):
@@ -122,6 +122,18 @@ def test_the_map_crop_flags_reach_the_eval_config(tmp_path, capsys):
   assert more.max_polylines == model_cfg.features.max_polylines   # never more than it was trained with
   with pytest.raises(ValueError, match="map_anchor"):
     evaluation.run_config(model_cfg, evaluation.EvalConfig(map_anchor="ego"))
+
+
+def test_the_start_velocity_flag_reaches_the_eval_config(tmp_path, capsys):
+  from experiments import _args, wosac
+  for cli in (wosac, rollout):
+    common = ["--scenarios", "x", "--out", str(tmp_path / ("s.binproto" if cli is wosac else "o")), "--method", "cv"]
+    assert _args.start_options(cli.parse_args(common)) == {"fit_start_velocity": True}
+    tracked = cli.parse_args(common + ["--start-velocity", "tracked"])
+    assert _args.start_options(tracked) == {"fit_start_velocity": False}
+    with pytest.raises(SystemExit) as err:
+      cli.parse_args(common + ["--start-velocity", "logged"])
+    assert err.value.code == 2 and "--start-velocity" in capsys.readouterr().err
 
 
 CLIS = ("bench", "demo", "diagnose", "export", "family_table", "finetune", "guidance_figure", "latent_report",

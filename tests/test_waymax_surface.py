@@ -221,6 +221,18 @@ def test_entry_points_on_the_real_record(real_state, tiny_models):
   assert type(final).__name__ == "SimulatorState" and int(scores.lost.sum()) == 0
 
 
+def test_a_simulated_start_on_waymax_surface():
+  """`env.simulated_start` (reset, then the start velocity from positions and the headings) takes
+  a surface-only state, as a Waymax rollout's reset state: object 1's tracked 14 m/s, which its
+  positions (8 m/s) contradict, becomes 8."""
+  loaded = make_scene(num_steps=91)
+  log = loaded.log_trajectory
+  loaded = loaded.replace(log_trajectory=log.replace(vel_x=log.vel_x.at[1, 10].set(14.0)))
+  start = jax.jit(lambda s: env.simulated_start(s, 11))(surface_only(loaded))
+  assert type(start).__name__ == "SimulatorState" and int(start.timestep) == 10
+  np.testing.assert_allclose(float(start.sim_trajectory.vel_x[1, 10]), 8.0, atol=1e-3)
+
+
 def test_reset_fills_like_waymax(real_state):
   """After reset: timestep 10, the log up to it; after it -1 in every float
   field and timestamp, invalid; is_controlled all False until a step sets it."""
