@@ -84,16 +84,15 @@ def fit_current_velocity(state: SimulatorState, steps: int = SPEED_FIT_STEPS,
   offsets = jnp.arange(steps) - (steps - 1)                                # (W,) -W+1 .. 0
   idx = jnp.clip(t + offsets, 0, sim.valid.shape[-1] - 1)                  # (..., 1, W)
   take = lambda a: jnp.take_along_axis(a, jnp.broadcast_to(idx, a.shape[:-1] + (steps,)), -1)
-  seen = jnp.all(take(sim.valid), -1) & (state.timestep[..., None] >= steps - 1)   # (..., O)
-  dt = (offsets - offsets.mean()) * 0.1                                   # (W,) s
+  seen = jnp.all(take(sim.valid), -1) & (t[..., 0] >= steps - 1)          # (..., O)
+  dt = (offsets - offsets.mean()) * 0.1                                   # (W,) s at 10 Hz
   slope = lambda a: jnp.sum(dt * (take(a) - take(a).mean(-1, keepdims=True)), -1) / jnp.sum(dt ** 2)
-  fit_x, fit_y = slope(sim.x), slope(sim.y)                               # (..., O)
-  cur = lambda a: jnp.take_along_axis(a, jnp.broadcast_to(t, a.shape[:-1] + (1,)), -1)[..., 0]
-  off = jnp.hypot(cur(sim.vel_x) - fit_x, cur(sim.vel_y) - fit_y)
-  replace = seen & (off > max_diff)                                        # (..., O)
-  now = (jnp.arange(sim.valid.shape[-1]) == t) & replace[..., None]       # (..., O, T)
-  return state.replace(sim_trajectory=sim.replace(vel_x=jnp.where(now, fit_x[..., None], sim.vel_x),
-                                                  vel_y=jnp.where(now, fit_y[..., None], sim.vel_y)))
+  fit_x, fit_y = slope(sim.x)[..., None], slope(sim.y)[..., None]         # (..., O, 1)
+  current = slice_time(sim, state.timestep)                               # (..., O, 1)
+  replace = seen[..., None] & (jnp.hypot(current.vel_x - fit_x, current.vel_y - fit_y) > max_diff)
+  fitted = current.replace(vel_x=jnp.where(replace, fit_x, current.vel_x),
+                           vel_y=jnp.where(replace, fit_y, current.vel_y))
+  return state.replace(sim_trajectory=update_time(sim, state.timestep, fitted))
 
 
 def simulated_start(state: SimulatorState, init_steps: int, align: bool = True,
