@@ -6,6 +6,8 @@ import argparse
 import os
 from typing import Optional
 
+from pcdiff_jax.config import RUN_MAP_ANCHOR
+
 
 def policy_item(text: str) -> tuple[str, object]:
   """'field=value' -> (field, value); a comma-separated value is a tuple."""
@@ -40,9 +42,9 @@ def add_map_flags(p: argparse.ArgumentParser, pieces: Optional[int] = None, why:
   p.add_argument("--map-pieces", type=int, default=pieces, metavar="N",
                  help=f"learned methods: at most this many map pieces for the encoder (default: {default}); "
                       "fewer is faster")
-  p.add_argument("--map-anchor", default=None, choices=("sdc", "agents"),
-                 help="learned methods: keep the pieces nearest the SDC (the model's default) or nearest any "
-                      "modelled agent")
+  p.add_argument("--map-anchor", default=RUN_MAP_ANCHOR, choices=("sdc", "agents"),
+                 help="learned methods: keep the pieces nearest any modelled agent (default) or nearest the "
+                      "SDC (as the model was trained)")
 
 
 def add_start_flags(p: argparse.ArgumentParser) -> None:

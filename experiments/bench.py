@@ -138,12 +138,12 @@ def bench_encoder(path: str, presets: list[str], repeats: int) -> list[dict]:
 
 def _config_of(preset: str):
   """The Config of a preset name, or the one a model folder (e.g. the shipped
-  checkpoints/pcdiff-cpu-v11) was trained with: its architecture, inputs and
-  sizes, so the timings are those of that model (weights stay untrained:
-  they do not change the cost)."""
+  checkpoints/pcdiff-cpu-v11) runs with: its architecture, inputs and sizes
+  and the run-time map crop (`shipped.run_config`), so the timings are those
+  of that model (weights stay untrained: they do not change the cost)."""
   if os.path.isdir(preset):
     from pcdiff_jax import shipped
-    return shipped.read_config(preset)
+    return shipped.run_config(shipped.read_config(preset))
   from pcdiff_jax.config import get_config
   return get_config(preset)
 

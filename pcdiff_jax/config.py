@@ -40,7 +40,8 @@ class FeaturesConfig:
   Map: polylines cut into pieces of at most `segment_length` metres (equal
   pieces per polyline), each resampled to `points_per_polyline` points; the
   `max_polylines` pieces nearest the SDC are kept (`map_anchor="agents"`:
-  nearest any modelled agent).
+  nearest any modelled agent). Training crops on the SDC; a trained model
+  runs on `RUN_MAP_ANCHOR` (`pretrained()`, `EvalConfig`).
   """
   max_agents: int = 65             # the SDC + the 64 reactive agents scored by MetricsConfig
   history_steps: int = 11
@@ -48,6 +49,12 @@ class FeaturesConfig:
   points_per_polyline: int = 10
   segment_length: float = 20.0     # m
   map_anchor: str = "sdc"
+
+
+# The map crop a trained model runs with: the pieces nearest any modelled agent, so an agent far
+# from the SDC keeps the map around it (docs/RESULTS.md, "Ablation: the model's map anchored on
+# the agents").
+RUN_MAP_ANCHOR = "agents"
 
 
 @dataclasses.dataclass(frozen=True)

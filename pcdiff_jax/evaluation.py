@@ -22,7 +22,7 @@ from jax.sharding import Mesh
 from pcdiff_jax import baselines, distributed
 from pcdiff_jax.baselines import idm
 from pcdiff_jax import metrics as metrics_lib
-from pcdiff_jax.config import MetricsConfig
+from pcdiff_jax.config import RUN_MAP_ANCHOR, MetricsConfig
 from pcdiff_jax.data import womd
 from pcdiff_jax.model import features as features_lib
 from pcdiff_jax.model import guidance as guidance_lib
@@ -69,9 +69,10 @@ class EvalConfig:
   so every evaluated agent is controlled and none follows its log; the
   attention layers take any agent count, at a cost that grows with it
   (docs/BENCHMARKS.md). map_pieces, map_anchor: the learned model's map crop
-  (`FeaturesConfig.max_polylines`, never above the trained model's; `.map_anchor`;
-  None keeps the trained model's): fewer pieces is a cheaper encoder, at a cost in
-  score measured in docs/BENCHMARKS.md, "WOSAC at WOMD scale"."""
+  (`FeaturesConfig.max_polylines`, never above the trained model's; `.map_anchor`,
+  by default `config.RUN_MAP_ANCHOR`; None keeps the trained model's): fewer pieces
+  is a cheaper encoder, at a cost in score measured in docs/BENCHMARKS.md, "WOSAC at
+  WOMD scale"."""
   method: str = "cv"
   checkpoint: Optional[str] = None
   ego: str = "log"
@@ -91,7 +92,7 @@ class EvalConfig:
   align_headings: bool = True
   fit_start_velocity: bool = True
   map_pieces: Optional[int] = None
-  map_anchor: Optional[str] = None
+  map_anchor: Optional[str] = RUN_MAP_ANCHOR
 
   @property
   def replan_every(self) -> int:

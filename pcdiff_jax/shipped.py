@@ -40,7 +40,9 @@ def pretrained(name: str = DEFAULT_NAME, stage: str = "diffusion", path: Optiona
   stage="encoder" returns (encoder parameters, cfg) instead, stage="simpl-ar"
   those the SIMPL-AR baseline runs with (its own fine-tuned encoder when the
   folder has one, else stage 1's). `path`: a folder with the same layout (e.g.
-  an exported or a training workdir)."""
+  an exported or a training workdir). cfg runs the map crop anchored on the
+  agents (`config.RUN_MAP_ANCHOR`, as the evaluation does); `read_config`
+  gives the one it was trained with."""
   from pcdiff_jax.training import diffusion_stage, encoder_stage
   folder = path or checkpoint_dir(name)
   if not os.path.isdir(folder):
@@ -48,11 +50,16 @@ def pretrained(name: str = DEFAULT_NAME, stage: str = "diffusion", path: Optiona
                             f"installed wheel carries only {DEFAULT_NAME})")
   if stage not in STAGES:
     raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
-  if stage == "encoder":
-    return encoder_stage.load(folder)
-  if stage == "simpl-ar":
-    return encoder_stage.load_simpl_ar(folder)
-  return diffusion_stage.load(folder)
+  load = {"encoder": encoder_stage.load, "simpl-ar": encoder_stage.load_simpl_ar}.get(stage, diffusion_stage.load)
+  params, cfg = load(folder)
+  return params, run_config(cfg)
+
+
+def run_config(cfg):
+  """A trained model's Config as it runs: its map crop anchored on the agents."""
+  import dataclasses
+  from pcdiff_jax.config import RUN_MAP_ANCHOR
+  return dataclasses.replace(cfg, features=dataclasses.replace(cfg.features, map_anchor=RUN_MAP_ANCHOR))
 
 
 def read_config(path: str, stage: str = "diffusion"):

@@ -108,7 +108,7 @@ def test_the_map_crop_flags_reach_the_eval_config(tmp_path, capsys):
     args = cli.parse_args(common + ["--map-pieces", "96", "--map-anchor", "agents"])
     assert args.map_crop == {"map_pieces": 96, "map_anchor": "agents"}
     default = wosac_lib.EXPORT_MAP_PIECES if cli is wosac else None   # the export crops by default
-    assert cli.parse_args(common).map_crop == {"map_pieces": default, "map_anchor": None}
+    assert cli.parse_args(common).map_crop == {"map_pieces": default, "map_anchor": "agents"}
     with pytest.raises(SystemExit) as err:
       cli.parse_args(common + ["--map-pieces", "0"])
     assert err.value.code == 2 and "--map-pieces must be >= 1" in capsys.readouterr().err
@@ -116,7 +116,9 @@ def test_the_map_crop_flags_reach_the_eval_config(tmp_path, capsys):
   run = evaluation.run_config(model_cfg, evaluation.EvalConfig(map_pieces=24, map_anchor="agents"))
   assert (run.features.max_polylines, run.features.map_anchor) == (24, "agents")
   assert run.features.max_agents == evaluation.EvalConfig().metrics.max_reactive_agents + 1
-  kept = evaluation.run_config(model_cfg, evaluation.EvalConfig()).features
+  run = evaluation.run_config(model_cfg, evaluation.EvalConfig()).features   # runs anchored on the agents
+  assert (run.max_polylines, run.map_anchor) == (model_cfg.features.max_polylines, "agents")
+  kept = evaluation.run_config(model_cfg, evaluation.EvalConfig(map_anchor=None)).features
   assert (kept.max_polylines, kept.map_anchor) == (model_cfg.features.max_polylines, "sdc")
   more = evaluation.run_config(model_cfg, evaluation.EvalConfig(map_pieces=10 ** 6)).features
   assert more.max_polylines == model_cfg.features.max_polylines   # never more than it was trained with

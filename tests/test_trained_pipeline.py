@@ -98,7 +98,9 @@ def test_both_stages_sample_and_export_as_a_shipped_model(tiny_trained, womd_pat
   assert export.main(["--workdir", work, "--out", shipped]) == 2          # never overwrites
   assert "exists" in capsys.readouterr().err
   loaded, loaded_cfg = pcdiff_jax.pretrained(path=shipped)
-  assert loaded_cfg == cfg
+  from pcdiff_jax import shipped as shipped_lib
+  assert shipped_lib.read_config(shipped) == cfg                           # as trained: the SDC's crop
+  assert loaded_cfg == shipped_lib.run_config(cfg) and loaded_cfg.features.map_anchor == "agents"
   for a, b in zip(jax.tree_util.tree_leaves(loaded), jax.tree_util.tree_leaves(models)):
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
   enc, _ = pcdiff_jax.pretrained(path=shipped, stage="encoder")

@@ -387,8 +387,16 @@ def _map_anchor_distance(rg_xy: Array, scene_xy: Array, anchor_xy: Array,
     return jnp.linalg.norm(rg_xy - scene_xy, axis=-1)
   if anchor != "agents":
     raise ValueError(f"unknown map_anchor {anchor!r}; choose one of {list(MAP_ANCHORS)}")
-  d = jnp.linalg.norm(rg_xy[:, None] - anchor_xy[None], axis=-1)         # (R, A)
-  return jnp.min(jnp.where(anchor_valid[None], d, jnp.inf), axis=1)
+  # A loop over the agents on (R,) x and y, one square root after the min: no (R, A) array,
+  # which XLA does not fuse inside the closed loop's scan (docs/BENCHMARKS.md, "The map crop
+  # anchored on the agents").
+  x, y = rg_xy[:, 0], rg_xy[:, 1]
+
+  def nearer(i, d2):
+    dx, dy = x - anchor_xy[i, 0], y - anchor_xy[i, 1]
+    return jnp.where(anchor_valid[i], jnp.minimum(d2, dx * dx + dy * dy), d2)
+
+  return jnp.sqrt(jax.lax.fori_loop(0, anchor_xy.shape[0], nearer, jnp.full(x.shape, jnp.inf)))
 
 
 def _map_features(state: SimulatorState, config: FeaturesConfig, scene_xy: Array,
