@@ -238,7 +238,9 @@ def test_bench_times_a_model_folders_config_or_a_preset():
   from pcdiff_jax import shipped
   from pcdiff_jax.config import get_config
   folder = shipped.checkpoint_dir()
-  assert bench._config_of(folder) == shipped.read_config(folder)   # e.g. the encoder's lane inputs
+  # As the model runs: the encoder's lane inputs, the map crop anchored on the agents.
+  assert bench._config_of(folder) == shipped.run_config(shipped.read_config(folder))
+  assert bench._config_of(folder).features.map_anchor == "agents"
   assert bench._config_of("tiny") == get_config("tiny")
 
 
