@@ -359,6 +359,7 @@ def _main(argv=None) -> int:
     if os.path.exists(target) and not args.overwrite and args.part is None:
       print(f"{target} exists: nothing to do (--overwrite to write it again)", file=sys.stderr)
       return 0
+    os.makedirs(os.path.dirname(os.path.abspath(target)), exist_ok=True)   # --out may name a new folder
     signal.signal(signal.SIGTERM, _interrupt)   # `timeout`, a batch system: keep what is done
     signal.signal(signal.SIGINT, _interrupt)
     if args.jobs > 1 and args.part is None:

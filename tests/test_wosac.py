@@ -611,16 +611,18 @@ def test_parts_merge_in_the_inputs_scenario_order(tmp_path):
 @pytest.mark.slow
 def test_jobs_write_the_file_one_process_writes(womd_path, tmp_path):
   """--jobs 2: two processes, each on its share of the cores, export every other scenario and
-  the parts are merged: the same bytes as one process (cv is deterministic), nothing left over."""
+  the parts are merged: the same bytes as one process (cv is deterministic), nothing left over;
+  --out may name a folder that does not exist yet."""
   from experiments import wosac as cli
   state, _ = womd.load(womd_path, to_jax=False)
   scenarios = str(tmp_path / "scenario.tfrecord")
   womd.write(scenarios, [(state, f"scene-{i}") for i in range(3)], record_format="scenario")
   common = ["--scenarios", scenarios, "--method", "cv", "--num-rollouts", "2", "--no-progress"]
   assert cli.main(common + ["--out", str(tmp_path / "one.binproto")]) == 0
-  assert cli.main(common + ["--out", str(tmp_path / "two.binproto"), "--jobs", "2"]) == 0
-  assert (tmp_path / "one.binproto").read_bytes() == (tmp_path / "two.binproto").read_bytes()
-  assert sorted(os.listdir(tmp_path)) == ["one.binproto", "scenario.tfrecord", "two.binproto"]
+  assert cli.main(common + ["--out", str(tmp_path / "new" / "two.binproto"), "--jobs", "2"]) == 0
+  assert (tmp_path / "one.binproto").read_bytes() == (tmp_path / "new" / "two.binproto").read_bytes()
+  assert sorted(os.listdir(tmp_path)) == ["new", "one.binproto", "scenario.tfrecord"]
+  assert os.listdir(tmp_path / "new") == ["two.binproto"]
 
 
 def test_plan_cap_is_the_first_bucket_that_holds_the_scene():
