@@ -29,8 +29,8 @@ class PolicyConfig:
 
   Replanning:
     replan_every: simulator steps between plans (1: 10 Hz, WOSAC's closed-loop rule; 2 re-draws
-      half as often and scores better on real and synthetic scenes: docs/RESULTS.md, "Ablation:
-      how often ours replans, and how much each replan keeps").
+      half as often and leaves the road less on real and synthetic scenes: docs/RESULTS.md,
+      "Ablation: how often ours replans, and how much each replan keeps").
     warm_start: a replan starts from the previous plan, advanced by the executed steps, instead
       of the prior: better realism and minADE at a fifth less time than cold plans (Table II).
     warm_step, warm_ddim_steps: the previous plan is noised to diffusion step warm_step (90: it
