@@ -24,7 +24,7 @@ def add_policy_flags(p: argparse.ArgumentParser) -> None:
   p.add_argument("--ddim-steps", type=int, default=None,
                  help=f"pcdiff: DDIM steps of a cold plan (policy field ddim_steps, default {PolicyConfig.ddim_steps})")
   p.add_argument("--replan-every", type=int, default=None,
-                 help="pcdiff: steps between plans (policy field replan_every; default 1 = 10 Hz)")
+                 help="pcdiff: steps between plans (policy field replan_every; default 2: plans at 5 Hz)")
   p.add_argument("--warm-start", action=argparse.BooleanOptionalAction, default=None,
                  help="pcdiff: start each replan from the previous plan (the default) or from the "
                       "proposal prior (policy field warm_start)")

@@ -22,7 +22,8 @@ split into encode (features + encoder + proposal latents), sample (DDIM) and
 decode (latent -> actions -> rollout with f), each with XLA's FLOP count (`mflop`); its scaling with the padded
 agent count (8-128), DDIM steps and scenarios per call (vmap); and the
 80-step closed loop as one fused `lax.scan` against a Python loop calling the
-jitted step. These rows plan with one sample (`select_samples=1`); the
+jitted step. Every closed loop here plans at every step (`replan_every=1`,
+10 Hz), the cost a replan at 10 Hz must fit in. These rows plan with one sample (`select_samples=1`); the
 default sample selection (S = 8) gets its own rows: a cold
 replanning (`replan_select8`) and the 80-step closed loop with every default
 (`fused_default_ms_per_step`; without selection's map term or its box overlaps, with one
@@ -259,7 +260,7 @@ def bench_fused_vs_loop(state, cfg, num_steps: int, repeats: int) -> dict:
   from pcdiff_jax.sim import env
   models = _policy_models(state, cfg)
   actor = policy.actor(cfg, policy.PolicyConfig(ddim_steps=cfg.diffusion.ddim_steps, warm_start=False,
-                                                select_samples=1))
+                                                select_samples=1, replan_every=1))
   rng = jax.random.PRNGKey(0)
   start = env.reset(state)
   fused = lambda s, r, m: env.rollout(s, actor, num_steps, r, params=m).final_state
@@ -280,7 +281,7 @@ def bench_fused_vs_loop(state, cfg, num_steps: int, repeats: int) -> dict:
   loop_times = _time(lambda: python_loop(start, rng, models), repeats)
   # Warm-started replanning (the default's warm DDIM steps from its warm step after the first plan), one sample.
   warm = policy.actor(cfg, policy.PolicyConfig(ddim_steps=cfg.diffusion.ddim_steps, warm_start=True,
-                                               select_samples=1))
+                                               select_samples=1, replan_every=1))
   warm_t = _compiled_ms(lambda s, r, m: env.rollout(s, warm, num_steps, r, params=m).final_state,
                         (start, rng, models), repeats)
   row = {"agents": cfg.features.max_agents, "steps": num_steps,
@@ -290,7 +291,7 @@ def bench_fused_vs_loop(state, cfg, num_steps: int, repeats: int) -> dict:
   # The default policy (warm start, temporal ensemble, sample selection with its map term), it
   # without the map term, without selection and with 4 samples (docs/RESULTS.md, "Ablation: samples per
   # replan"). The actor's state (the road field of the map term) is made once per scenario, outside: its cost is its own row.
-  default = policy.PolicyConfig()
+  default = dataclasses.replace(policy.PolicyConfig(), replan_every=1)   # a plan at every step: 10 Hz
   for name, pcfg in (("fused_default_ms_per_step", default),
                      ("fused_default_nomap_ms_per_step", dataclasses.replace(default, select_map_weight=0.0)),
                      ("fused_default_select1_ms_per_step", dataclasses.replace(default, select_samples=1)),
@@ -427,7 +428,8 @@ def bench_devices(path: str, preset: str, counts: list[int], train_steps: int, r
   model_cfg = evaluation.with_agent_cap(cfg, metrics_cfg)
   models = _policy_models(env.reset(state), model_cfg)
   actors = {"cv": (evaluation.METHODS["cv"](metrics_cfg.max_reactive_agents), None),
-            "pcdiff": (policy.actor(model_cfg, policy.PolicyConfig(ddim_steps=cfg.diffusion.ddim_steps)), models)}
+            "pcdiff": (policy.actor(model_cfg, policy.PolicyConfig(ddim_steps=cfg.diffusion.ddim_steps,
+                                                                  replan_every=1)), models)}
   scenes = jax.tree_util.tree_map(lambda a: np.repeat(np.asarray(a)[None], rollout_batch, 0), state)
   rngs = jax.random.split(jax.random.PRNGKey(0), rollout_batch)
   rollout_rows = []

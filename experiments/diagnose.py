@@ -445,7 +445,7 @@ def main(argv=None) -> None:
   r.add_argument("--plans", default=",".join(PLANS))
   d = sub.add_parser("drift", help="offset from the log in closed loop")
   d.add_argument("--method", default="pcdiff", choices=["pcdiff", "pcdiff-noprior", "simpl-ar", "idm", "cv"])
-  d.add_argument("--replan-every", type=int, default=1)
+  d.add_argument("--replan-every", type=int, default=policy.PolicyConfig().replan_every)
   d.add_argument("--ddim-steps", type=int, default=5)
   d.add_argument("--consistent-noise", action="store_true")
   d.add_argument("--execute", default="actions", choices=["actions", "track"])

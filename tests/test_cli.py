@@ -90,11 +90,24 @@ def test_wosac_takes_the_same_policy_options(tmp_path, capsys):
   args = wosac.parse_args(["--scenarios", "x", "--out", str(tmp_path / "s.binproto"), "--method", "pcdiff",
                            "--checkpoint", "c", "--ddim-steps", "3", "--policy", "select_samples=4", "eta=0.5"])
   pcfg = args.policy_config
-  assert (pcfg.ddim_steps, pcfg.select_samples, pcfg.eta, pcfg.replan_every) == (3, 4, 0.5, 1)
+  assert (pcfg.ddim_steps, pcfg.select_samples, pcfg.eta, pcfg.replan_every) == (3, 4, 0.5, 2)
   for bad, named in (("bogus=1", "bogus"), ("ddim_steps=0", "ddim_steps")):
     with pytest.raises(SystemExit) as err:
       wosac.parse_args(["--scenarios", "x", "--out", str(tmp_path / "s.binproto"), "--method", "cv", "--policy", bad])
     assert err.value.code == 2 and named in capsys.readouterr().err
+
+
+def test_the_submission_acknowledges_the_closed_loop_rule_at_1_hz_or_more(tmp_path):
+  from experiments import wosac
+  from pcdiff_jax import evaluation
+  from pcdiff_jax import wosac as wosac_lib
+  for every, complies in ((1, True), (2, True), (10, True), (11, False)):
+    args = wosac.parse_args(["--scenarios", "x", "--out", str(tmp_path / "s.binproto"), "--method", "pcdiff",
+                             "--checkpoint", "c", "--replan-every", str(every)])
+    ev = evaluation.EvalConfig(method="pcdiff", checkpoint="c", policy=args.policy_config)
+    meta = wosac._metadata(args, wosac_lib.WosacConfig(eval=ev))
+    assert meta.acknowledge_complies_with_closed_loop_requirement is complies
+    assert f"planned at {10 / every:g} Hz" in meta.description
 
 
 def test_the_map_crop_flags_reach_the_eval_config(tmp_path, capsys):

@@ -11,6 +11,9 @@ track id) and 80 values each of `center_x`, `center_y`, `center_z`, `heading`
 name, and the now required `uses_lidar_data`, `uses_camera_data`,
 `uses_public_model_pretraining`, `num_model_parameters` (an integer with an
 optional K/M/B/T suffix) and `acknowledge_complies_with_closed_loop_requirement`.
+The closed-loop rule (the challenge's page): a rollout is a sequence of inference
+calls, each conditioned on the states simulated so far, at 1 Hz or more, the
+10 Hz output filled in between (`MAX_STEPS_BETWEEN_CALLS`).
 Large sets go in several files named `NAME.binproto-00000-of-00150`, packed
 into one tar.gz for upload.
 """
@@ -28,6 +31,7 @@ from pcdiff_jax.data import waymo_protos as pb
 CURRENT_INDEX = 10
 NUM_SIM_STEPS = 80
 NUM_ROLLOUTS = 32
+MAX_STEPS_BETWEEN_CALLS = 10   # the closed-loop rule: inference at 1 Hz or more, output at 10 Hz
 FIELDS = ("center_x", "center_y", "center_z", "heading")
 FILENAME_RE = re.compile(r".*\.binproto(-\d{5}-of-\d{5})?$")
 PARAMS_RE = re.compile(r"^\d+[KMBT]?$")
@@ -295,7 +299,7 @@ def check_metadata(sub, path: str) -> list[str]:
       problems.append(f"{path}: {field} is not set (required)")
   if not sub.acknowledge_complies_with_closed_loop_requirement:
     problems.append(f"{path}: acknowledge_complies_with_closed_loop_requirement is false (the challenge "
-                    "requires closed-loop simulation at 10 Hz)")
+                    "requires closed-loop simulation: inference at 1 Hz or more)")
   if not PARAMS_RE.match(sub.num_model_parameters):
     problems.append(f"{path}: num_model_parameters {sub.num_model_parameters!r} is not an integer with an "
                     "optional K/M/B/T suffix (required, e.g. '200K')")

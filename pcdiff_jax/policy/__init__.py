@@ -12,8 +12,9 @@ actor controls the reactive agents: the SDC and up to A - 1 agents nearest it, v
 start of the rollout, minus the SDC, which follows its log; every other object follows its log.
 The controlled set is fixed at `init`, and every plan models it whole (the SDC, every controlled
 agent still alive, then the nearest other objects as context), so a controlled agent is never
-dropped for a newcomer. Every `replan_every` steps the policy plans anew; in between it executes
-the plan's next action.
+dropped for a newcomer. Every `replan_every` steps (2 by default: 5 Hz) the actor plans anew; in
+between it executes the plan's next action through the filters, which read the current state.
+`step` keeps no plan, so it plans at every call.
 
 One module per step of the recipe:
   config      PolicyConfig, its ranges (`validate`) and overrides (`with_overrides`)
