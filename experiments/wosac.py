@@ -154,8 +154,8 @@ def _metadata(args, cfg: wosac.WosacConfig) -> submission.Metadata:
   ev = cfg.eval
   description = args.description
   if description is None:
-    hz = 10 / ev.policy.replan_every if ev.method in evaluation.LEARNED else 10
-    description = (f"pcdiff_jax {ev.method}: closed loop, planned at {hz:g} Hz, output at 10 Hz" +
+    description = (f"pcdiff_jax {ev.method}: closed loop, planned at {10 / ev.replan_every:g} Hz, "
+                   "output at 10 Hz" +
                    (f", DDIM {ev.policy.ddim_steps} steps, {ev.metrics.max_reactive_agents} agents + SDC per plan, "
                     "IDM beyond" if ev.method in evaluation.LEARNED else "") +
                    (", IDM ego" if cfg.ego == "idm" else ""))
@@ -169,13 +169,7 @@ def _metadata(args, cfg: wosac.WosacConfig) -> submission.Metadata:
       uses_public_model_pretraining=args.uses_public_model_pretraining,
       public_model_names=tuple(args.public_model_names),
       num_model_parameters="" if args.num_model_parameters is None else args.num_model_parameters,
-      acknowledge_complies_with_closed_loop_requirement=closed_loop(ev.policy))
-
-
-def closed_loop(pcfg) -> bool:
-  """Whether a policy that plans every `pcfg.replan_every` steps keeps the challenge's closed-loop
-  rule: an inference call at least every `submission.MAX_STEPS_BETWEEN_CALLS` steps (1 Hz)."""
-  return pcfg.replan_every <= submission.MAX_STEPS_BETWEEN_CALLS
+      acknowledge_complies_with_closed_loop_requirement=ev.replan_every <= submission.MAX_STEPS_BETWEEN_CALLS)
 
 
 def _check(args) -> int:
@@ -378,8 +372,8 @@ def _main(argv=None) -> int:
     if speaks and args.method == wosac.LOG_REPLAY:
       print("warning: --method log copies the logged future: a reference to score (--score), NOT a valid "
             "submission", file=sys.stderr)
-    if speaks and not closed_loop(pcfg):
-      print(f"warning: --replan-every {pcfg.replan_every} plans below 1 Hz, which the challenge's closed-loop "
+    if speaks and ev.replan_every > submission.MAX_STEPS_BETWEEN_CALLS:
+      print(f"warning: --replan-every {ev.replan_every} plans below 1 Hz, which the challenge's closed-loop "
             "rule does not admit; the submission does not acknowledge it", file=sys.stderr)
     summary = wosac.export(args.scenarios, args.out, cfg, _metadata(args, cfg), shard=args.shard,
                            max_scenarios=args.max_scenarios, progress=not args.no_progress, part=args.part,

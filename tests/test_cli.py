@@ -101,13 +101,14 @@ def test_the_submission_acknowledges_the_closed_loop_rule_at_1_hz_or_more(tmp_pa
   from experiments import wosac
   from pcdiff_jax import evaluation
   from pcdiff_jax import wosac as wosac_lib
-  for every, complies in ((1, True), (2, True), (10, True), (11, False)):
-    args = wosac.parse_args(["--scenarios", "x", "--out", str(tmp_path / "s.binproto"), "--method", "pcdiff",
+  for method, every, complies, hz in (("pcdiff", 1, True, 10), ("pcdiff", 2, True, 5), ("pcdiff", 10, True, 1),
+                                      ("pcdiff", 11, False, 10 / 11), ("cv", 11, True, 10)):   # cv decides every step
+    args = wosac.parse_args(["--scenarios", "x", "--out", str(tmp_path / "s.binproto"), "--method", method,
                              "--checkpoint", "c", "--replan-every", str(every)])
-    ev = evaluation.EvalConfig(method="pcdiff", checkpoint="c", policy=args.policy_config)
+    ev = evaluation.EvalConfig(method=method, checkpoint="c", policy=args.policy_config)
     meta = wosac._metadata(args, wosac_lib.WosacConfig(eval=ev))
     assert meta.acknowledge_complies_with_closed_loop_requirement is complies
-    assert f"planned at {10 / every:g} Hz" in meta.description
+    assert f"planned at {hz:g} Hz" in meta.description
 
 
 def test_the_map_crop_flags_reach_the_eval_config(tmp_path, capsys):
