@@ -725,3 +725,32 @@ def test_a_noisy_logged_speed_does_not_force_an_acceleration(models):
       select_samples=1, still_gate=(0.0, 0.0))))(noisy, jax.random.PRNGKey(1))
   assert np.all(np.abs(np.asarray(action.data)[:, 0]) <= CFG.kinematics.max_accel + 1e-5)
 
+
+
+def test_cruise_floor_holds_a_fast_car_on_a_free_straight_road():
+  """cruise_floor: a car at 20 m/s with nothing ahead on its straight plan may brake at most
+  hold[1]; nothing is held behind a slow car in its lane (the follow bound would brake), on a
+  plan that turns, below hold[0], nor for a pedestrian. In `execute` a plan braking at 4 m/s^2
+  is held there, and the follow bound still wins behind a leader."""
+  from pcdiff_jax.policy import execution
+  hold = (15.0, 1.0)
+  floor = lambda s, p: np.asarray(execution.cruise_floor(
+      s, p, policy.follow_bound(s, p, (0.5, 4.0), 0.1), hold))
+  straight = jnp.zeros((4, 80, 2))
+  free = _follow_scene((20.0, 5.0, 20.0, 10.0), (0.0, 15.0, -200.0, 300.0), (-2.0, 2.0, 6.0, -2.0))
+  np.testing.assert_array_equal(floor(free, straight), [-1.0, -np.inf, -1.0, -np.inf])
+  led = _follow_scene((20.0, 5.0, 20.0, 10.0), (0.0, 15.0, -200.0, 300.0), (-2.0, -2.0, 6.0, -2.0))
+  assert floor(led, straight)[0] == -np.inf
+  turning = straight.at[:, :, 1].set(0.2)          # 4 m/s^2 of lateral acceleration at 20 m/s
+  assert floor(free, turning)[0] == -np.inf
+  walker = _follow_scene((20.0, 5.0, 20.0, 10.0), (0.0, 15.0, -200.0, 300.0), (-2.0, 2.0, 6.0, -2.0),
+                         types=("PEDESTRIAN", "VEHICLE", "VEHICLE", "VEHICLE"))
+  assert floor(walker, straight)[0] == -np.inf
+  on = policy.PolicyConfig(cruise_hold=hold, jerk_limit=(0.0, 0.0))
+  braking = straight.at[:, :, 0].set(-4.0)
+  now, _ = policy.execute(free, braking, jnp.zeros((4, 80, 2)), 0, on, CFG, jnp.zeros(4))
+  assert float(now[0, 0]) == -1.0 and float(now[3, 0]) == -4.0
+  now, _ = policy.execute(led, braking, jnp.zeros((4, 80, 2)), 0, on, CFG, jnp.zeros(4))
+  assert float(now[0, 0]) <= -4.0
+  with pytest.raises(ValueError, match="cruise_hold"):
+    policy.actor(CFG, policy.PolicyConfig(cruise_hold=(15.0, -1.0)))

@@ -88,6 +88,11 @@ class PolicyConfig:
       and so will not brake for it, up to 2 m/s^2, and so does a queue of ours ahead of it; the
       follow bound still caps it (`execution.rear_guard`; "Ablation: the rear guard": fewer
       collisions on real val and on the synthetic splits).
+    cruise_hold: (m/s, m/s^2): a vehicle at least this fast, on a plan that keeps straight, with
+      nothing on its path the follow bound would brake for, brakes at most this hard
+      (`execution.cruise_floor`): at highway speeds the plans brake where real drivers keep
+      their speed ("Ablation: the cruise hold": less minADE on real val and train, the rates
+      level); (0, 0) is off.
     stop_hold: braking ends at standstill, so a stopped car never reverses on plan noise.
     still_gate: (seconds, metres): an agent slower than START_GATE_SPEED whose proposals,
       weighted by probability, carry it less than `metres` within `seconds` is stopped and held
@@ -129,6 +134,7 @@ class PolicyConfig:
   select_boxes: bool = True
   follow_crossing: bool = True
   rear_guard: bool = True
+  cruise_hold: tuple[float, float] = (15.0, 1.0)
 
 
 EXECUTE = ("actions", "track")
@@ -195,6 +201,8 @@ def validate(cfg: Config, policy: PolicyConfig) -> None:
     raise ValueError(f"still_gate must be (seconds, metres) >= 0, got {policy.still_gate}")
   if len(policy.follow) != 2 or not (all(f > 0 for f in policy.follow) or not any(policy.follow)):
     raise ValueError(f"follow must be (reaction s, braking m/s^2), both > 0, or (0, 0) for off; got {policy.follow}")
+  if len(policy.cruise_hold) != 2 or not all(h >= 0 for h in policy.cruise_hold):
+    raise ValueError(f"cruise_hold must be (m/s, m/s^2) >= 0, or (0, 0) for off; got {policy.cruise_hold}")
   if policy.max_curvature < 0:
     raise ValueError(f"max_curvature must be >= 0 (1/m; 0: off), got {policy.max_curvature}")
   policy.guidance.validate()

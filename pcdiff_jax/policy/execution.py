@@ -2,8 +2,9 @@
 
 `execute` takes the plan's current step (or pure pursuit of its path), then, as PolicyConfig
 turns them on, limits the jerk, keeps a wheeled agent ahead of a car on its log closing from
-behind, and able to stop behind the leader on its planned path, holds braking at standstill and
-bounds the curvature; `ensemble_plans` blends
+behind, keeps a fast vehicle on a free straight road from braking hard (the cruise hold), keeps
+it able to stop behind the leader on its planned path, holds braking at standstill and bounds
+the curvature; `ensemble_plans` blends
 consecutive plans before that (temporal ensembling). The plan itself is never changed by a
 filter: the next replan starts from the state the filtered action led to.
 """
@@ -58,12 +59,17 @@ def execute(state: SimulatorState, plan: Array, path: Array, age, policy: Policy
       last_accel = jnp.clip(executed_accel(state, cfg.kinematics.dt), -cfg.kinematics.max_accel,
                             cfg.kinematics.max_accel)
     now = limit_jerk(now, last_accel, policy.jerk_limit, cfg.kinematics.dt)
+  ahead = advance_plan(plan, age)
+  bound = None
+  if all(policy.follow) or policy.cruise_hold[0] > 0:
+    bound = follow_bound(state, ahead, policy.follow if all(policy.follow) else CRUISE_FREE_FOLLOW,
+                         cfg.kinematics.dt, followers, cfg.features.max_agents, policy.follow_crossing)
   if policy.rear_guard and followers is not None:
     now = now.at[:, 0].set(jnp.maximum(now[:, 0], rear_guard(state, followers)))
+  if policy.cruise_hold[0] > 0:
+    now = now.at[:, 0].set(jnp.maximum(now[:, 0], cruise_floor(state, ahead, bound, policy.cruise_hold)))
   unbound = now
   if all(policy.follow):
-    bound = follow_bound(state, advance_plan(plan, age), policy.follow, cfg.kinematics.dt, followers,
-                         cfg.features.max_agents, policy.follow_crossing)
     now = now.at[:, 0].set(jnp.minimum(now[:, 0], bound))
   if policy.stop_hold:
     now, unbound = (hold_at_stop(state, a, cfg.kinematics.dt) for a in (now, unbound))
@@ -313,6 +319,27 @@ def rear_guard(state: SimulatorState, followers: Array) -> Array:
   queue = in_line_behind & (gap < REAR_GUARD_QUEUE_GAP) & pushed[None] & pushed[:, None]
   passed_on = lambda _, a: jnp.maximum(a, jnp.max(jnp.where(queue, a[None], -jnp.inf), -1))
   return jax.lax.fori_loop(0, REAR_GUARD_QUEUE_HOPS, passed_on, own)
+
+
+CRUISE_FREE_FOLLOW = (0.5, 4.0)   # (reaction s, braking m/s^2): the free-road test with the follow bound off
+CRUISE_LOOKAHEAD = 30            # plan steps (3 s) whose turning the cruise hold reads
+CRUISE_MAX_LATERAL = 1.5         # m/s^2: a plan that turns harder than this on average may slow for its turn
+
+
+def cruise_floor(state: SimulatorState, plan: Array, bound: Array, hold) -> Array:
+  """(O,) the least acceleration of a vehicle cruising on a free road: -hold[1] m/s^2 for a
+  vehicle at hold[0] m/s or faster whose follow bound `bound` (O,) would not brake it (no
+  leader or crossing object near on its path) and whose plan (O, T, 2 from now) turns less
+  than CRUISE_MAX_LATERAL on average over the next CRUISE_LOOKAHEAD steps; -inf elsewhere.
+  At highway speeds the plans brake where the logs keep their speed (docs/RESULTS.md,
+  "Ablation: the cruise hold")."""
+  min_speed, max_brake = hold
+  cur = state.current_sim_trajectory
+  speed = jnp.sqrt(jnp.sum(cur.vel_xy[:, 0] ** 2, -1))
+  lateral = jnp.abs(jnp.mean(plan[:, :CRUISE_LOOKAHEAD, 1], -1)) * speed
+  vehicle = state.object_metadata.object_types == ObjectType.VEHICLE
+  free = vehicle & cur.valid[:, 0] & (speed >= min_speed) & (bound >= 0.0) & (lateral <= CRUISE_MAX_LATERAL)
+  return jnp.where(free, -max_brake, -jnp.inf)
 
 
 def safe_speed(gap: Array, lead_speed: Array, reaction: float, brake: float) -> Array:
