@@ -27,9 +27,8 @@ from pcdiff_jax.policy.actors import PlanState, actor, controlled_or_default, st
 from pcdiff_jax.policy.config import EXECUTE, PolicyConfig, validate, with_overrides
 from pcdiff_jax.policy.execution import (FOLLOW_MAX_BRAKE, FOLLOW_MIN_GAP, STOPPED_REVERSE_SPEED,
                                          controlled_action, cruise_floor, ensemble_plans, execute,
-                                         executed_accel,
-                                         follow_bound, hold_at_stop, limit_curvature, limit_jerk,
-                                         logged_accel, safe_speed)
+                                         executed_accel, follow_bound, hold_at_stop, limit_curvature,
+                                         limit_jerk, logged_accel, safe_speed)
 from pcdiff_jax.policy.planning import (START_GATE_SPEED, Encoded, WarmStart, advance_plan, decode, encode,
                                         plan_actions, pursuer_of, reactive_set, road_for, sample,
                                         still_agents, stop_plan, warm_centres)
@@ -38,7 +37,8 @@ from pcdiff_jax.policy.selection import select, select_sample
 __all__ = [
     "EXECUTE", "Encoded", "FOLLOW_MAX_BRAKE", "FOLLOW_MIN_GAP", "PlanState", "PolicyConfig",
     "START_GATE_SPEED", "STOPPED_REVERSE_SPEED", "WarmStart", "actor", "advance_plan",
-    "controlled_action", "controlled_or_default", "cruise_floor", "decode", "encode", "ensemble_plans", "execute",
+    "controlled_action", "controlled_or_default", "cruise_floor", "decode", "encode", "ensemble_plans",
+    "execute",
     "executed_accel", "follow_bound", "hold_at_stop", "limit_curvature", "limit_jerk", "logged_accel",
     "plan_actions", "pursuer_of", "reactive_set", "road_for", "safe_speed", "sample", "select",
     "select_sample", "step", "still_agents", "stop_plan", "validate", "warm_centres", "waymax_actor",

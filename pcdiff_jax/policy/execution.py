@@ -62,7 +62,8 @@ def execute(state: SimulatorState, plan: Array, path: Array, age, policy: Policy
   ahead = advance_plan(plan, age)
   bound = None
   if all(policy.follow) or policy.cruise_hold[0] > 0:
-    bound = follow_bound(state, ahead, policy.follow if all(policy.follow) else CRUISE_FREE_FOLLOW,
+    # With the follow bound off, the cruise hold still tests the road ahead with its default.
+    bound = follow_bound(state, ahead, policy.follow if all(policy.follow) else PolicyConfig.follow,
                          cfg.kinematics.dt, followers, cfg.features.max_agents, policy.follow_crossing)
   if policy.rear_guard and followers is not None:
     now = now.at[:, 0].set(jnp.maximum(now[:, 0], rear_guard(state, followers)))
@@ -321,7 +322,6 @@ def rear_guard(state: SimulatorState, followers: Array) -> Array:
   return jax.lax.fori_loop(0, REAR_GUARD_QUEUE_HOPS, passed_on, own)
 
 
-CRUISE_FREE_FOLLOW = (0.5, 4.0)   # (reaction s, braking m/s^2): the free-road test with the follow bound off
 CRUISE_LOOKAHEAD = 30            # plan steps (3 s) whose turning the cruise hold reads
 CRUISE_MAX_LATERAL = 1.5         # m/s^2: a plan that turns harder than this on average may slow for its turn
 
