@@ -77,7 +77,8 @@ def _round_policy(name: str = "v8"):
     return dc.replace(policy.PolicyConfig(), select_samples=1)
   return policy.PolicyConfig(select_samples=1, replan_every=1, warm_step=30, warm_ddim_steps=2, select_stride=1,
                              temporal_ensemble=(0.3, 0.0), jerk_limit=(0.0, 0.0), stop_hold=False,
-                             still_gate=(0.0, 0.0), max_curvature=0.0, follow=(0.0, 0.0))
+                             still_gate=(0.0, 0.0), max_curvature=0.0, follow=(0.0, 0.0),
+                             cruise_hold=(0.0, 0.0))
 
 
 def parse_args(argv=None) -> argparse.Namespace:

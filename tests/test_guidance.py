@@ -60,6 +60,19 @@ def test_map_and_collision_costs_are_zero_for_a_clean_scene_and_positive_otherwi
   assert float(coll[0]) > 0 and float(coll[1]) > 0 and float(coll[2]) == 0.0
 
 
+def test_map_excursion_is_how_far_a_corner_gets_past_the_edge():
+  """Edges at y = +-4: a car 2 m wide centred on y = -1.5 stays 1.5 m inside; shifted 3 m
+  off its lower corners are 1.5 m past the edge; a padded agent or a non-vehicle reads -inf."""
+  base = _straight([-1.5, 1.5, -1.5], [10.0, 10.0, 10.0], [0.0, 0.0, -60.0])
+  xy, yaw = _poses(base)(jnp.array([[0.0, -3.0], [0.0, 0.0], [0.0, 0.0]]))
+  agents = dataclasses.replace(_agents(valid=[True, True, False]), vehicle=jnp.array([True, True, True]))
+  out = np.asarray(G.map_excursion(xy, yaw, agents, _road(), CFG))
+  np.testing.assert_allclose(out[:2], [1.5, -1.5], atol=0.15)
+  assert out[2] == -np.inf
+  walker = dataclasses.replace(agents, vehicle=jnp.array([False, True, True]))
+  assert float(G.map_excursion(xy, yaw, walker, _road(), CFG)[0]) == -np.inf
+
+
 @pytest.mark.parametrize("case", ["coincident", "padded", "empty_map", "all_padded"])
 def test_gradients_are_finite_everywhere(case):
   base = _straight([0.0, 0.0, 0.0], [10.0, 10.0, 0.0], [0.0, 0.0, 0.0])   # 0 and 1 coincide

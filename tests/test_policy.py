@@ -754,3 +754,42 @@ def test_cruise_floor_holds_a_fast_car_on_a_free_straight_road():
   assert float(now[0, 0]) <= -4.0
   with pytest.raises(ValueError, match="cruise_hold"):
     policy.actor(CFG, policy.PolicyConfig(cruise_hold=(15.0, -1.0)))
+
+
+def test_map_spare_allows_what_a_likely_proposal_leaving_the_road_costs(models):
+  """proposal_map_allowance: object 2 of make_scene stands 2.5 m off the road, so each of its
+  proposals takes a corner past the edge and its allowance is its likeliest such J_map > 0;
+  no proposal is that likely (probability > 1) or leaves the road 1 km: no allowance. The
+  sample selection runs with the spare; the policy refuses a bad one."""
+  from pcdiff_jax.model import guidance as guidance_lib
+  from pcdiff_jax.policy import planning, selection
+  from pcdiff_jax.sim.datatypes import ObjectType
+  state = env.reset(make_scene(num_steps=91))
+  pcfg = policy.PolicyConfig(select_samples=2)
+
+  @jax.jit
+  def run(state):
+    scene = planning.encode(models, state, CFG, pcfg)
+    road = planning.road_for(state, pcfg).in_frame(scene.feats.scene_xy, scene.feats.scene_yaw)
+    road = jax.tree_util.tree_map(lambda a: a[None], road)
+    length, width = planner.agent_size(scene.feats)
+    agents = guidance_lib.Agents(length=length, width=width, valid=scene.feats.agent_valid,
+                                 vehicle=scene.feats.agent_types == ObjectType.VEHICLE,
+                                 pursuer=jnp.int32(-1), evader=jnp.int32(-1))
+    allow = lambda p, m: selection.proposal_map_allowance(
+        models, scene.cond, scene.feats, CFG, pcfg.select_lookahead, pcfg.select_stride, agents,
+        road, pcfg.guidance, p, m)
+    noise = 3.0 * jax.random.normal(jax.random.key(1), scene.cond.mu[0].shape)
+    y0 = jnp.stack([scene.cond.mu[0], scene.cond.mu[0] + noise])          # (2, A, d)
+    chosen = selection.select_sample(
+        y0, models, scene.cond, scene.batched, CFG, pcfg.select_lookahead,
+        jnp.arange(y0.shape[1]) == 0, road, pcfg.select_map_weight, pcfg.guidance,
+        pcfg.select_stride, map_spare=(0.0, 1.0))
+    return (scene.feats.agent_index, allow(0.0, 1.0), allow(1.01, 0.0), allow(0.0, 1000.0), chosen)
+
+  index, spared, unlikely, far, chosen = map(np.asarray, run(state))
+  assert spared[int(np.argmax(index == 2))] > 0
+  assert (spared >= 0).all() and np.isfinite(spared).all() and np.isfinite(chosen).all()
+  assert not unlikely.any() and not far.any()
+  with pytest.raises(ValueError, match="select_map_spare"):
+    policy.actor(CFG, policy.PolicyConfig(select_map_spare=(1.5, 1.0)))

@@ -35,16 +35,19 @@ NUM_STEPS = 5
 SETTINGS = {
     # The defaults the reference was recorded with (the still gate, the curvature bound and the
     # follow bound came on by default after it; "gates" covers the first two, tests/test_policy.py
-    # the follow bound). Every setting but "track" plans at every step, the default then.
-    "defaults": policy.PolicyConfig(still_gate=(0.0, 0.0), max_curvature=0.0, follow=(0.0, 0.0), replan_every=1),
+    # the follow bound). Every setting but "track" plans at every step, the default then, and
+    # none spares the map term (`select_map_spare`, a default added after the recording).
+    "defaults": policy.PolicyConfig(still_gate=(0.0, 0.0), max_curvature=0.0, follow=(0.0, 0.0), replan_every=1,
+                                 select_map_spare=(0.0, 0.0)),
     "gates": policy.PolicyConfig(still_gate=(2.0, 2.0), max_curvature=0.05, select_held_still=False,
-                                 follow=(0.0, 0.0), replan_every=1),
+                                 follow=(0.0, 0.0), replan_every=1, select_map_spare=(0.0, 0.0)),
     # The selection scoring held agents standing still (the default after "gates" was recorded).
     "held_still": policy.PolicyConfig(still_gate=(2.0, 2.0), max_curvature=0.05, follow=(0.0, 0.0),
-                                      replan_every=1),
+                                      replan_every=1, select_map_spare=(0.0, 0.0)),
     "track": policy.PolicyConfig(execute="track", consistent_noise=True, prior_centre="top1",
                                  replan_every=2, select_samples=2, jerk_limit=(1.0, 0.0),
-                                 still_gate=(0.0, 0.0), max_curvature=0.0, follow=(0.0, 0.0)),
+                                 still_gate=(0.0, 0.0), max_curvature=0.0, follow=(0.0, 0.0),
+                                 select_map_spare=(0.0, 0.0)),
     "cold_guided": policy.PolicyConfig(warm_start=False, select_samples=1, ddim_steps=2,
                                        temporal_ensemble=(0.0, 0.0), stop_hold=False,
                                        still_gate=(0.0, 0.0), max_curvature=0.0, follow=(0.0, 0.0),

@@ -134,15 +134,28 @@ class Agents:
 def map_cost(xy: Array, yaw: Array, agents: Agents, road: RoadField, cfg: GuidanceConfig) -> Array:
   """(..., A) mean squared excursion of the vehicles' box corners past the
   road edge; road: the scene's field, queried in the frame of xy."""
+  excess = jnp.maximum(_corners_past_edge(xy, yaw, agents, road, cfg) + cfg.map_margin, 0.0)
+  per_agent = jnp.mean(excess ** 2, axis=(-1, -2))
+  return jnp.where(agents.valid & agents.vehicle, per_agent, 0.0)
+
+
+def map_excursion(xy: Array, yaw: Array, agents: Agents, road: RoadField, cfg: GuidanceConfig) -> Array:
+  """(..., A) the furthest any box corner of each vehicle gets past the road edge (m; < 0
+  inside), over the steps map_cost reads; -inf for other agents."""
+  furthest = jnp.max(_corners_past_edge(xy, yaw, agents, road, cfg), axis=(-1, -2))
+  return jnp.where(agents.valid & agents.vehicle, furthest, -jnp.inf)
+
+
+def _corners_past_edge(xy: Array, yaw: Array, agents: Agents, road: RoadField,
+                       cfg: GuidanceConfig) -> Array:
+  """(..., A, T', 4) signed distance of the box corners past the road edge (> 0 outside) at
+  every map_stride-th step of xy (..., A, T, 2)."""
   xy, yaw = xy[..., ::cfg.map_stride, :], yaw[..., ::cfg.map_stride]
   corners = geometry.box_corners(xy[..., 0], xy[..., 1], yaw, agents.length[..., None],
                                  agents.width[..., None])                    # (..., A, T', 4, 2)
   shape = corners.shape
   flat = corners.reshape(shape[:-4] + (-1, 2))
-  sd = road_field.lookup(road, flat)
-  excess = jnp.maximum(sd + cfg.map_margin, 0.0).reshape(shape[:-1])
-  per_agent = jnp.mean(excess ** 2, axis=(-1, -2))
-  return jnp.where(agents.valid & agents.vehicle, per_agent, 0.0)
+  return road_field.lookup(road, flat).reshape(shape[:-1])
 
 
 def _gather_agents(a: Array, index: Array) -> Array:

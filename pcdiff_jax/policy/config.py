@@ -55,6 +55,12 @@ class PolicyConfig:
       the choice equals the dense one where the (N+1)-th agent cannot reach the samples.
     select_map_weight: weight of each sample's J_map (`guidance.map_cost`, m^2) beside its
       overlaps, so an agent also prefers a sample that stays on the road; 0 turns it off.
+    select_map_spare: (probability, metres): a sample is charged only the J_map beyond the
+      largest of the agent's own proposals of at least this probability that take a box
+      corner at least this far past the road edge, so where the encoder expects a car to
+      leave the mapped road (into a lot or driveway the map does not hold) its samples may
+      follow it; a proposal that only clips a curb spares nothing. (0, 0) charges every
+      excursion (docs/RESULTS.md, "Ablation: the map spare").
     select_held_still: score the agents the still gate holds where they will be (standing at
       their start) rather than where their samples go, so the others' choices avoid the place
       they stand ("Ablation: held agents in the sample selection": fewer collisions on real
@@ -122,6 +128,7 @@ class PolicyConfig:
   select_samples: int = 8
   select_lookahead: int = 30
   select_map_weight: float = 30.0
+  select_map_spare: tuple[float, float] = (0.1, 1.5)
   select_stride: int = 3
   select_neighbours: int = 16
   jerk_limit: tuple[float, float] = (1.5, 5.0)
@@ -197,6 +204,10 @@ def validate(cfg: Config, policy: PolicyConfig) -> None:
     raise ValueError(f"select_neighbours must be >= 0 (0: every pair), got {policy.select_neighbours}")
   if policy.select_map_weight < 0:
     raise ValueError(f"select_map_weight must be >= 0, got {policy.select_map_weight}")
+  if (len(policy.select_map_spare) != 2 or not 0 <= policy.select_map_spare[0] <= 1
+      or policy.select_map_spare[1] < 0):
+    raise ValueError("select_map_spare must be (probability in [0, 1], metres >= 0), or (0, 0) "
+                     f"for off; got {policy.select_map_spare}")
   if len(policy.still_gate) != 2 or not all(g >= 0 for g in policy.still_gate):
     raise ValueError(f"still_gate must be (seconds, metres) >= 0, got {policy.still_gate}")
   if len(policy.follow) != 2 or not (all(f > 0 for f in policy.follow) or not any(policy.follow)):

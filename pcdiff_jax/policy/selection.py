@@ -14,7 +14,7 @@ import jax.numpy as jnp
 
 from pcdiff_jax.config import Config
 from pcdiff_jax.model import guidance as guidance_lib
-from pcdiff_jax.model import joint_selection, planner
+from pcdiff_jax.model import joint_selection, latent, planner
 from pcdiff_jax.model.planner import Models
 from pcdiff_jax.policy.config import PolicyConfig
 from pcdiff_jax.sim.datatypes import Array, ObjectType
@@ -38,7 +38,7 @@ def select(y0: Array, models: Models, scene, cfg: Config, policy: PolicyConfig, 
   return select_sample(y0, models, scene.cond, scene.batched, cfg, policy.select_lookahead, keep,
                        road_here, policy.select_map_weight, policy.guidance, policy.select_stride,
                        policy.select_neighbours, scene.hold if policy.select_held_still else None,
-                       policy.select_boxes)
+                       policy.select_boxes, policy.select_map_spare)
 
 
 def select_sample(y0: Array, models: Models, cond: planner.Conditioning, batched, cfg: Config,
@@ -46,7 +46,7 @@ def select_sample(y0: Array, models: Models, cond: planner.Conditioning, batched
                   map_weight: float = 0.0,
                   guidance: guidance_lib.GuidanceConfig = guidance_lib.GuidanceConfig(),
                   stride: int = 1, neighbours: int = 0, held: Optional[Array] = None,
-                  boxes: bool = False) -> Array:
+                  boxes: bool = False, map_spare: tuple[float, float] = (0.0, 0.0)) -> Array:
   """(1, A, d): per agent, one of the S joint samples y0 (S, A, d) of one scene
   (cond, batched: that scene repeated S times) such that the chosen plans
   overlap least over their first `lookahead` steps, every `stride`-th (`PolicyConfig.select_samples`),
@@ -54,7 +54,9 @@ def select_sample(y0: Array, models: Models, cond: planner.Conditioning, batched
   scene frame) when map_weight > 0; agents where keep (A,) keep sample 0. neighbours > 0: overlaps against each
   agent's that many nearest agents only (`PolicyConfig.select_neighbours`). held (A,): agents
   the still gate stops, scored where they will be (standing at their start) in every sample.
-  boxes: overlaps also count box against box (`joint_selection.collision_counts`)."""
+  boxes: overlaps also count box against box (`joint_selection.collision_counts`).
+  map_spare (probability, metres), unless (0, 0): J_map is charged only beyond the agent's
+  likely proposals that leave the road (`proposal_map_allowance`)."""
   states = planner.decode_states(models.stats, cond, y0, cfg, lookahead)[..., ::stride, :]   # (S, A, L, 4)
   if held is not None:
     states = jnp.where(held[None, :, None, None], 0.0, states)
@@ -74,7 +76,12 @@ def select_sample(y0: Array, models: Models, cond: planner.Conditioning, batched
     agents = guidance_lib.Agents(length=length, width=width, valid=feats.agent_valid,
                                  vehicle=feats.agent_types == ObjectType.VEHICLE,
                                  pursuer=jnp.int32(-1), evader=jnp.int32(-1))
-    unary = map_weight * guidance_lib.map_cost(xy, yaw, agents, road, guidance).T    # (A, S)
+    cost = guidance_lib.map_cost(xy, yaw, agents, road, guidance).T                   # (A, S)
+    if any(map_spare):
+      allowance = proposal_map_allowance(models, cond, feats, cfg, lookahead, stride, agents, road,
+                                         guidance, *map_spare)
+      cost = jnp.maximum(cost - allowance[:, None], 0.0)
+    unary = map_weight * cost
   # ICM starts from each agent's best unary sample (sample 0 on ties) and never moves a kept
   # agent: a zero unary keeps it on sample 0.
   unary = jnp.where(keep[:, None], 0.0, unary)
@@ -84,3 +91,22 @@ def select_sample(y0: Array, models: Models, cond: planner.Conditioning, batched
       unary, coll, feats.agent_valid & ~keep, float(stride), sweeps=2, order=jnp.arange(num), others=others)
   return jnp.take_along_axis(y0, choice[None, :, None], axis=0)
 
+
+
+def proposal_map_allowance(models: Models, cond: planner.Conditioning, feats, cfg: Config,
+                           lookahead: int, stride: int, agents: guidance_lib.Agents,
+                           road: RoadField, guidance: guidance_lib.GuidanceConfig,
+                           min_prob: float, min_excursion: float) -> Array:
+  """(A,) the largest J_map among each agent's proposals of probability >= min_prob that
+  take a box corner min_excursion metres or more past the road edge, over the selection's
+  steps: how far the encoder itself expects the agent to leave the mapped road (0 where no
+  such proposal). cond: the S repeated copies (their first is read); feats: the unbatched
+  scene."""
+  states = latent.rollout(cond.proposals[0], cond.speed[0][:, None], models.stats, cfg.kinematics,
+                          lookahead)[..., ::stride, :]                              # (A, K, L, 4)
+  xy, yaw = planner.to_scene(states, feats)
+  xy, yaw = jnp.moveaxis(xy, 1, 0), jnp.moveaxis(yaw, 1, 0)                         # (K, A, L, ...)
+  cost = guidance_lib.map_cost(xy, yaw, agents, road, guidance)                     # (K, A)
+  leaves = guidance_lib.map_excursion(xy, yaw, agents, road, guidance) >= min_excursion
+  likely = jnp.moveaxis(cond.probs[0], 1, 0) >= min_prob
+  return jnp.max(jnp.where(likely & leaves, cost, 0.0), axis=0)
