@@ -100,8 +100,8 @@ def proposal_map_allowance(models: Models, cond: planner.Conditioning, feats, cf
   """(A,) the largest J_map among each agent's proposals of probability >= min_prob that
   take a box corner min_excursion metres or more past the road edge, over the selection's
   steps: how far the encoder itself expects the agent to leave the mapped road (0 where no
-  such proposal). cond: the S repeated copies (their first is read); feats: the unbatched
-  scene."""
+  such proposal; docs/RESULTS.md, "Ablation: the map spare"). cond: the S repeated copies
+  (their first is read); feats: the unbatched scene."""
   states = latent.rollout(cond.proposals[0], cond.speed[0][:, None], models.stats, cfg.kinematics,
                           lookahead)[..., ::stride, :]                              # (A, K, L, 4)
   xy, yaw = planner.to_scene(states, feats)
