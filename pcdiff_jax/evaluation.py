@@ -264,7 +264,7 @@ def _markdown(summary: dict) -> str:
             f"{100 * r['offroad_past_log_rate']:.2f} points are vehicles that left the road only "
             f"after their log had ended. Evaluated agents per seed: "
             f"{int(r['num_evaluated'])} (vehicles {int(r['num_vehicles'])}; still in the log, moving < 1 m: "
-            f"{int(r['num_still_agents'])}); skipped scenarios: "
+            f"{int(r['num_still_agents'])}); minADE per kind: {_per_kind(r)}; skipped scenarios: "
             f"{len(summary['skipped'])}. Controlled agents lost mid-rollout: {summary['lost_agents']} of "
             f"{summary['controlled_agents']} (all seeds); objects following their log: "
             f"{summary['log_following_agents']}. Runtime: one jitted closed-loop call over "
@@ -277,6 +277,16 @@ def _markdown(summary: dict) -> str:
               f"| {adv['num_pairs']} pairs | {100 * adv['ego_adv_collision_rate']:.2f} | "
               f"{100 * adv['adv_offroad_rate']:.2f} | {adv['min_distance']:.2f} | {adv['impact_speed']:.2f} |"]
   return "\n".join(lines) + "\n"
+
+
+def _per_kind(rates: dict) -> str:
+  """'vehicles 1.20 m (4227), pedestrians ...' from a seed-mean of `metrics.aggregate`."""
+  kinds = []
+  for name, _ in metrics_lib.ADE_KINDS:
+    n = int(rates.get(f"num_ade_{name}", 0))
+    if n:
+      kinds.append(f"{name}s {rates[f'min_ade_{name}']:.2f} m ({n})")
+  return ", ".join(kinds) or "none"
 
 
 _ADVERSARIAL = ("num_pairs", "ego_adv_collision_rate", "adv_offroad_rate", "min_distance", "impact_speed")

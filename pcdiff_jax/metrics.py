@@ -18,7 +18,8 @@ Per rolled-out scenario (`score_rollout`, jit-able, vmap over scenarios):
 Aggregated (`aggregate`, host side): collision rate, off-road rate, realism =
 the mean over the three quantities of W1 between the L1-normalised histograms
 (generated vs logged, summed over all scenarios first), minADE = the mean over
-agents of the smallest ADE over the N stochastic rollouts of a scenario,
+agents of the smallest ADE over the N stochastic rollouts of a scenario (also
+per kind: vehicles, pedestrians, cyclists),
 still_moved_rate = moved still agents / still agents over every rollout (0
 for log replay by construction).
 
@@ -39,10 +40,12 @@ from flax import struct
 
 from pcdiff_jax.data import realism
 from pcdiff_jax.sim import metrics as sim_metrics
-from pcdiff_jax.sim.datatypes import Array, SimulatorState
+from pcdiff_jax.sim.datatypes import Array, ObjectType, SimulatorState
 from pcdiff_jax.sim.selection import nearest_to_sdc
 
 REALISM_QUANTITIES = ("lon_accel", "lat_accel", "jerk")
+ADE_KINDS = (("vehicle", ObjectType.VEHICLE), ("pedestrian", ObjectType.PEDESTRIAN),
+             ("cyclist", ObjectType.CYCLIST))   # minADE is also reported per kind
 STILL_LOG_M = 1.0   # m: an agent is still when its log stays this close to its start position
 MOVED_SIM_M = 2.0   # m: a still agent moved when the rollout takes it this far from it
 
@@ -59,7 +62,8 @@ class RolloutScores:
   that drops an agent makes it vanish: it must stay 0); log_following: (O,)
   objects valid at the start that no actor controlled (they replay the log).
   still: (O,) evaluated agents still in the log; still_moved: (O,) of those,
-  the ones moved more than 2 m in closed loop (`still_moved`).
+  the ones moved more than 2 m in closed loop (`still_moved`). object_type: (O,)
+  `ObjectType` values, for minADE per kind.
   """
   events: sim_metrics.EventCounts
   hist_sim: Array
@@ -71,6 +75,7 @@ class RolloutScores:
   log_following: Array
   still: Array
   still_moved: Array
+  object_type: Array
   adversarial: Optional["AdversarialScores"] = None
 
 
@@ -197,7 +202,8 @@ def score_rollout(final_state: SimulatorState, start_step: int, num_steps: int, 
                        hist_log=_hist_counts(log, mask), ade=ade, ade_valid=count > 0,
                        controlled=controlled, lost=lost,
                        log_following=log_following,
-                       still=still, still_moved=moved)
+                       still=still, still_moved=moved,
+                       object_type=final_state.object_metadata.object_types)
 
 
 def lost_agents(final_state: SimulatorState, start_step: int, num_steps: int) -> tuple[Array, Array]:
@@ -236,6 +242,11 @@ def aggregate(scores: RolloutScores) -> dict[str, float]:
   out.update(realism_w1(np.sum(scores.hist_sim, axis=(0, 1)), np.sum(scores.hist_log, axis=(0, 1))))
   out["min_ade"] = float(min_ade[scored].mean()) if scored.any() else float("nan")
   out["num_ade_agents"] = int(scored.sum())
+  kind = np.asarray(scores.object_type)[:, 0]                              # (S, O)
+  for name, value in ADE_KINDS:
+    of_kind = scored & (kind == value)
+    out[f"min_ade_{name}"] = float(min_ade[of_kind].mean()) if of_kind.any() else float("nan")
+    out[f"num_ade_{name}"] = int(of_kind.sum())
   out["controlled_agents"] = int(np.sum(scores.controlled))
   out["lost_agents"] = int(np.sum(scores.lost))
   out["log_following_agents"] = int(np.sum(scores.log_following))
@@ -247,7 +258,8 @@ def aggregate(scores: RolloutScores) -> dict[str, float]:
   return out
 
 
-_PER_OBJECT = ("ade", "ade_valid", "controlled", "lost", "log_following", "still", "still_moved")
+_PER_OBJECT = ("ade", "ade_valid", "controlled", "lost", "log_following", "still", "still_moved",
+               "object_type")
 
 
 def concatenate_scores(parts: list[RolloutScores]) -> RolloutScores:

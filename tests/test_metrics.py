@@ -219,3 +219,23 @@ def test_scores_of_scenes_with_different_object_counts_concatenate():
   assert out["controlled_agents"] == sum(a["controlled_agents"] for a in alone)
   n = [a["num_ade_agents"] for a in alone]
   assert np.isclose(out["min_ade"], (alone[0]["min_ade"] * n[0] + alone[1]["min_ade"] * n[1]) / sum(n))
+
+
+def test_min_ade_is_also_reported_per_kind():
+  """Object 2, a pedestrian, is simulated 3 m off its log after the start: minADE per kind
+  splits it from the vehicles (object 3 1.5 m off, object 1 on its log); no cyclist."""
+  from pcdiff_jax import metrics as metrics_lib
+  from pcdiff_jax.sim.datatypes import ObjectType
+  state = make_scene(speeds=(10.0, 8.0, 0.0, 0.0), xs=(0.0, 0.0, 10.0, -30.0))
+  md = state.object_metadata
+  state = state.replace(object_metadata=md.replace(object_types=md.object_types.at[2].set(ObjectType.PEDESTRIAN)))
+  t = jnp.arange(state.log_trajectory.num_timesteps)
+  sim = state.log_trajectory
+  sim = sim.replace(x=sim.x.at[2].add(jnp.where(t > 5, 3.0, 0.0)).at[3].add(jnp.where(t > 5, 1.5, 0.0)))
+  final = state.replace(sim_trajectory=sim, timestep=jnp.int32(25))
+  scores = metrics_lib.score_rollout(final, 5, 20, 4, 256)
+  out = metrics_lib.aggregate(jax.tree_util.tree_map(lambda a: np.asarray(a)[None, None], scores))
+  assert out["num_ade_pedestrian"] == 1 and np.isclose(out["min_ade_pedestrian"], 3.0)
+  assert out["num_ade_vehicle"] == out["num_ade_agents"] - 1 == 2   # the SDC replays its log
+  assert np.isclose(out["min_ade_vehicle"], 1.5 / 2)
+  assert out["num_ade_cyclist"] == 0 and np.isnan(out["min_ade_cyclist"])

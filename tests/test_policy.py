@@ -793,3 +793,45 @@ def test_map_spare_allows_what_a_likely_proposal_leaving_the_road_costs(models):
   assert not unlikely.any() and not far.any()
   with pytest.raises(ValueError, match="select_map_spare"):
     policy.actor(CFG, policy.PolicyConfig(select_map_spare=(1.5, 1.0)))
+
+
+def test_pedestrians_plan_on_their_proposals(models):
+  """pedestrian_plan: object 3 of make_scene made a pedestrian gets its likeliest proposal
+  ("top") in every sample, or ("drawn") on a warm replan the proposal nearest its previous plan
+  in sample 0 and proposals in the others; the vehicles' samples are the denoiser's either way,
+  the same draws as "sample"."""
+  from pcdiff_jax.policy import planning
+  from pcdiff_jax.sim.datatypes import ObjectType
+  state = env.reset(make_scene(num_steps=91))
+  md = state.object_metadata
+  state = state.replace(object_metadata=md.replace(
+      object_types=md.object_types.at[3].set(ObjectType.PEDESTRIAN)))
+  pcfg = policy.PolicyConfig(select_samples=3)
+  road = planning.road_for(state, pcfg)
+  rng = jax.random.key(0)
+
+  @functools.partial(jax.jit, static_argnums=0)
+  def draw(how, warm):
+    p = dataclasses.replace(pcfg, pedestrian_plan=how)
+    scene = planning.encode(models, state, CFG, p)
+    return scene, planning.sample(models, scene, CFG, p, rng, -1, road, warm=warm)
+
+  scene, sampled = draw("sample", None)
+  _, top = draw("top", None)
+  slot = int(np.argmax(np.asarray(scene.feats.agent_index) == 3))
+  props, probs = np.asarray(scene.cond.proposals[0, slot]), np.asarray(scene.cond.probs[0, slot])
+  walker = np.arange(sampled.shape[1]) == slot
+  np.testing.assert_allclose(np.asarray(top)[:, slot], np.broadcast_to(props[np.argmax(probs)], (3, props.shape[-1])))
+  np.testing.assert_array_equal(np.asarray(top)[:, ~walker], np.asarray(sampled)[:, ~walker])
+  # A warm replan whose previous plan for the pedestrian is its least likely proposal keeps it.
+  least = int(np.argmin(probs))
+  from pcdiff_jax.model import latent
+  plan = latent.decode(jnp.asarray(props[least]), models.stats)                     # (T, 2)
+  actions = jnp.zeros((4,) + plan.shape).at[3].set(plan)
+  warm = planning.WarmStart(actions=actions, has=jnp.arange(4) == 3)
+  _, drawn = draw("drawn", warm)
+  drawn = np.asarray(drawn)[:, slot]
+  np.testing.assert_allclose(drawn[0], props[least], atol=1e-5)
+  assert all(np.abs(props - y).max(-1).min() < 1e-5 for y in drawn[1:])   # each another proposal
+  with pytest.raises(ValueError, match="pedestrian_plan"):
+    policy.actor(CFG, policy.PolicyConfig(pedestrian_plan="walk"))

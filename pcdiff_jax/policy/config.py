@@ -26,6 +26,12 @@ class PolicyConfig:
       cold replan, so consecutive plans stay on one mode (smoother, but committed to it).
     guidance: test-time guidance of every plan (`model.guidance`; "Table III: adversarial
       guidance", "Ablation: objective guidance's collision weight").
+    pedestrian_plan: "sample" plans pedestrians with the denoiser, as every other agent; "top"
+      puts each pedestrian on its likeliest proposal in every sample; "drawn" on its mode in
+      sample 0 (the likeliest proposal, or at a warm replan the one nearest its previous plan)
+      and on a proposal drawn by probability in each other sample, for the selection to choose.
+      On real scenes the denoiser's pedestrian samples scatter and leave most walkers standing;
+      on the proposals they walk, and collide more ("Ablation: pedestrians on their proposals").
 
   Replanning:
     replan_every: simulator steps between plans (2: a plan at 5 Hz, its first two actions
@@ -142,9 +148,11 @@ class PolicyConfig:
   follow_crossing: bool = True
   rear_guard: bool = True
   cruise_hold: tuple[float, float] = (15.0, 1.0)
+  pedestrian_plan: str = "sample"
 
 
 EXECUTE = ("actions", "track")
+PEDESTRIAN_PLANS = ("sample", "top", "drawn")
 
 
 def with_overrides(policy: PolicyConfig, overrides) -> PolicyConfig:
@@ -177,6 +185,8 @@ def validate(cfg: Config, policy: PolicyConfig) -> None:
     raise ValueError(f"prior_centre must be 'mean' or 'top1', got {policy.prior_centre!r}")
   if policy.execute not in EXECUTE:
     raise ValueError(f"execute must be one of {EXECUTE}, got {policy.execute!r}")
+  if policy.pedestrian_plan not in PEDESTRIAN_PLANS:
+    raise ValueError(f"pedestrian_plan must be one of {PEDESTRIAN_PLANS}, got {policy.pedestrian_plan!r}")
   if not 2 <= policy.track_steps <= cfg.encoder.horizon:
     raise ValueError(f"track_steps must be in [2, {cfg.encoder.horizon}], got {policy.track_steps}")
   if not 0 <= policy.warm_step < cfg.diffusion.num_steps:

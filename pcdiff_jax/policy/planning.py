@@ -77,7 +77,8 @@ def sample(models: Models, scene: Encoded, cfg: Config, policy: PolicyConfig, rn
   slot under adversarial guidance; road: the scene's road field). noise (O, d): per-object
   initial noise (consistent_noise), default drawn from rng. warm: a previous plan to start from
   (warm_start), else the prior; the plan is cold when no modelled agent has a previous one.
-  A denoiser with anchor inputs gets them here (`planner.draw_anchor`)."""
+  A denoiser with anchor inputs gets them here (`planner.draw_anchor`); pedestrians go on their
+  proposals as policy.pedestrian_plan says (`pedestrians_on_proposals`)."""
   feats, cond = scene.feats, scene.cond
   init_noise = None if noise is None else noise[feats.agent_index][None]   # (1, A, d)
   if init_noise is not None and policy.select_samples > 1:
@@ -95,16 +96,41 @@ def sample(models: Models, scene: Encoded, cfg: Config, policy: PolicyConfig, rn
   g = policy.guidance
   if warm is None:
     steps = g.guide_steps(policy.ddim_steps) if guide is not None else None
-    return planner.sample(models.denoiser, cond, cfg, rng, policy.ddim_steps, policy.eta,
-                          prior_init=policy.prior_init, guide=guide, guide_steps=steps,
-                          init_noise=init_noise)
-  centre = warm_centres(cond, previous, has)
-  return planner.sample_cold_or_warm(
-      models.denoiser, cond, cfg, rng, ~jnp.any(has), centre, policy.ddim_steps,
-      policy.warm_ddim_steps, policy.warm_step, policy.eta, prior_init=policy.prior_init,
-      guide=guide, cold_guide_steps=g.guide_steps(policy.ddim_steps) if guide is not None else None,
-      warm_guide_steps=g.guide_steps(policy.warm_ddim_steps) if guide is not None else None,
-      init_noise=init_noise)
+    y0 = planner.sample(models.denoiser, cond, cfg, rng, policy.ddim_steps, policy.eta,
+                        prior_init=policy.prior_init, guide=guide, guide_steps=steps,
+                        init_noise=init_noise)
+  else:
+    centre = warm_centres(cond, previous, has)
+    y0 = planner.sample_cold_or_warm(
+        models.denoiser, cond, cfg, rng, ~jnp.any(has), centre, policy.ddim_steps,
+        policy.warm_ddim_steps, policy.warm_step, policy.eta, prior_init=policy.prior_init,
+        guide=guide, cold_guide_steps=g.guide_steps(policy.ddim_steps) if guide is not None else None,
+        warm_guide_steps=g.guide_steps(policy.warm_ddim_steps) if guide is not None else None,
+        init_noise=init_noise)
+  k_walk = jax.random.fold_in(rng, 2)   # rng itself untouched: "sample" draws as before
+  return pedestrians_on_proposals(y0, cond, feats, policy.pedestrian_plan, k_walk, previous, has)
+
+
+def pedestrians_on_proposals(y0: Array, cond: planner.Conditioning, feats, how: str, rng: Array,
+                             previous: Optional[Array] = None, has: Optional[Array] = None) -> Array:
+  """(S, A, d) the samples y0 with each pedestrian's latent replaced by one of its proposals
+  (`PolicyConfig.pedestrian_plan`): "top", its likeliest in every sample; "drawn", in sample 0
+  its mode (the likeliest, or at a warm replan the one nearest its previous plan (1, A, d) where
+  has (A,)) and in each other sample one drawn by probability, for the selection to choose
+  from; "sample" keeps y0. docs/RESULTS.md, "Ablation: pedestrians on their proposals"."""
+  if how == "sample":
+    return y0
+  index = jnp.broadcast_to(jnp.argmax(cond.probs, -1), y0.shape[:-1])               # (S, A)
+  if how == "drawn":
+    mode = index
+    if previous is not None:
+      mode = jnp.where(has[None], planner.nearest_proposal(cond, jnp.broadcast_to(previous, y0.shape)), index)
+    drawn = jax.random.categorical(rng, jnp.log(jnp.maximum(cond.probs, 1e-9)))      # (S, A)
+    index = jnp.where((jnp.arange(y0.shape[0]) == 0)[:, None], mode, drawn)
+  chosen = jnp.take_along_axis(jnp.broadcast_to(cond.proposals, y0.shape[:-1] + cond.proposals.shape[-2:]),
+                               index[..., None, None], axis=-2)[..., 0, :]          # (S, A, d)
+  walker = feats.agent_valid & (feats.agent_types == ObjectType.PEDESTRIAN)         # (A,)
+  return jnp.where(walker[None, :, None], chosen, y0)
 
 
 def decode(y0: Array, models: Models, scene: Encoded, state: SimulatorState, cfg: Config,
