@@ -30,7 +30,7 @@ class PolicyConfig:
       puts each pedestrian on its likeliest proposal in every sample; "drawn" on its mode in
       sample 0 (the likeliest proposal, or at a warm replan the one nearest its previous plan)
       and on a proposal drawn by probability in each other sample, for the selection to choose.
-      On real scenes the denoiser's pedestrian samples scatter and leave most walkers standing;
+      On real scenes the denoiser's pedestrian samples scatter and leave many walkers standing;
       on the proposals they walk, and collide more ("Ablation: pedestrians on their proposals").
 
   Replanning:
