@@ -303,7 +303,9 @@ def bench_fused_vs_loop(state, cfg, num_steps: int, repeats: int) -> dict:
                      ("fused_default_no_crossing_ms_per_step", dataclasses.replace(default, follow_crossing=False)),
                      ("fused_default_no_rear_guard_ms_per_step", dataclasses.replace(default, rear_guard=False)),
                      ("fused_default_no_map_spare_ms_per_step",
-                      dataclasses.replace(default, select_map_spare=(0.0, 0.0)))):
+                      dataclasses.replace(default, select_map_spare=(0.0, 0.0))),
+                     ("fused_default_pedestrians_sampled_ms_per_step",
+                      dataclasses.replace(default, pedestrian_plan="sample"))):
     act = policy.actor(cfg, pcfg)
     init = jax.jit(act.init)(rng, start)
     row[name] = _compiled_ms(

@@ -78,7 +78,7 @@ def _round_policy(name: str = "v8"):
   return policy.PolicyConfig(select_samples=1, replan_every=1, warm_step=30, warm_ddim_steps=2, select_stride=1,
                              temporal_ensemble=(0.3, 0.0), jerk_limit=(0.0, 0.0), stop_hold=False,
                              still_gate=(0.0, 0.0), max_curvature=0.0, follow=(0.0, 0.0),
-                             cruise_hold=(0.0, 0.0))
+                             cruise_hold=(0.0, 0.0), pedestrian_plan="sample")
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -321,7 +321,7 @@ def main(argv=None) -> int:
           mode="objective", w_map=args.teacher_w_map, w_coll=args.teacher_w_coll,
           guided_steps=args.teacher_guided_steps, inner_steps=args.teacher_inner_steps)
       teacher = policy.PolicyConfig(ddim_steps=5, warm_start=False, select_samples=1,
-                                    guidance=teacher_guidance)
+                                    guidance=teacher_guidance, pedestrian_plan="sample")
     tc = model_cfg.diffusion_train
     tc = dataclasses.replace(tc, total_steps=args.steps, learning_rate=args.learning_rate,
                              warmup_steps=min(50, args.steps // 10), eval_every=args.steps,

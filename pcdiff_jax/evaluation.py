@@ -259,7 +259,9 @@ def _markdown(summary: dict) -> str:
             f"of the collision rate, {100 * r['collision_with_replayed_rate']:.2f} points are "
             f"agents hit by (or hitting) an object that replays its log. "
             f"Vehicle-vehicle collision rate "
-            f"{100 * r['vehicle_collision_rate']:.2f}%; vehicles starting off-road "
+            f"{100 * r['vehicle_collision_rate']:.2f}%; pedestrians and cyclists overlapping a "
+            f"vehicle {100 * r['vru_vehicle_collision_rate']:.2f}% (of {int(r['num_vrus'])}); "
+            f"vehicles starting off-road "
             f"{100 * r['start_offroad_fraction']:.2f}%; of the off-road rate, "
             f"{100 * r['offroad_past_log_rate']:.2f} points are vehicles that left the road only "
             f"after their log had ended. Evaluated agents per seed: "
@@ -402,6 +404,7 @@ def evaluate(scenarios: Sequence[str] | str, out_dir: str, cfg: EvalConfig,
       "num_rollouts": n_roll,
       **{k: _mean_std([m[k] for m in per_seed]) for k, _, _ in HEADLINE[:-1]},
       "vehicle_collision_rate": _mean_std([m["vehicle_collision_rate"] for m in per_seed]),
+      "vru_vehicle_collision_rate": _mean_std([m["vru_vehicle_collision_rate"] for m in per_seed]),
       "runtime_ms_per_replan": {**_mean_std(step_ms), "scenarios_per_call": call_size,
                                 "ms_per_scenario": float(np.mean(step_ms)) / call_size,
                                 "replan_every": cfg.replan_every, "note": "compile excluded"},

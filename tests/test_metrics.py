@@ -9,6 +9,7 @@ import pytest
 from conftest import make_scene
 from pcdiff_jax import baselines
 from pcdiff_jax.sim import env, metrics
+from pcdiff_jax.sim.datatypes import ObjectType
 from pcdiff_jax.sim.selection import nearest_to_sdc
 
 
@@ -59,6 +60,26 @@ def test_collisions_with_objects_replaying_their_log_are_counted_apart():
   assert int(count(None).collided_with_replayed) == 0
   assert int(count(jnp.arange(4) == 1).collided_with_replayed) == 0   # agent 1 is nobody's partner
 
+
+
+def test_pedestrians_hit_by_a_vehicle_are_counted_apart_from_walkers_overlapping():
+  """Agent 3 runs into the SDC from behind. As a pedestrian it is a walker overlapping a
+  vehicle (the SDC's collision has no vehicle partner); with the SDC a pedestrian too, the two
+  overlap as walkers in a group do, and no vehicle is involved."""
+  s = make_scene()
+  sim = s.log_trajectory
+  t = jnp.arange(sim.num_timesteps)
+  sim = sim.replace(x=sim.x.at[3].set(jnp.where(t > 5, sim.x[3, 5] + 30.0 * (t - 5) * 0.1, sim.x[3])))
+  types = s.object_metadata.object_types
+  walker = s.replace(object_metadata=s.object_metadata.replace(object_types=types.at[3].set(ObjectType.PEDESTRIAN)))
+  c = _counts(walker, sim, k=4)
+  assert int(c.collided) == 2 and int(c.vehicle_collided) == 0
+  assert int(c.num_vrus) == 1 and int(c.vru_vehicle_collided) == 1
+  assert c.rates()["vru_vehicle_collision_rate"] == 1.0
+  group = s.replace(object_metadata=s.object_metadata.replace(
+      object_types=types.at[0].set(ObjectType.PEDESTRIAN).at[3].set(ObjectType.PEDESTRIAN)))
+  c = _counts(group, sim, k=4)
+  assert int(c.collided) == 2 and int(c.num_vrus) == 2 and int(c.vru_vehicle_collided) == 0
 
 def _two_roads(state, offset: float = 100.0):
   """The scene's roadgraph and a copy of it `offset` m to the left (+y): two parallel roads."""
@@ -115,8 +136,9 @@ def test_log_replay_rates_on_the_real_record(real_state):
   Measured: off-road rate 0 (14 of 59 vehicles start off the road: parked
   cars); vehicle-vehicle collisions 0; collision rate 2/64, 5/64 with the
   objects that enter later as partners: the log's own pedestrian boxes
-  (0.7 m) overlap inside a walking group and brush two parked cars. These are
-  label overlaps, not simulator errors.
+  (0.7 m) overlap inside a walking group and brush two parked cars (of the 5
+  evaluated pedestrians, 1 overlaps a vehicle after the start). These are label
+  overlaps, not simulator errors.
   """
   start = 10
   state = env.reset(real_state)
@@ -127,6 +149,7 @@ def test_log_replay_rates_on_the_real_record(real_state):
   assert int(c.num_evaluated) == 64 and int(c.num_vehicles) == 59
   assert int(c.became_offroad) == 0 and int(c.start_offroad) == 14
   assert int(c.vehicle_collided) == 0 and int(c.collided) == 2 and int(c.collided_with_entering) == 5
+  assert int(c.num_vrus) == 5 and int(c.vru_vehicle_collided) == 1
   types = np.asarray(state.object_metadata.object_types)
   pairs = np.asarray(metrics.pairwise_overlap(state.log_trajectory))[11:]
   involved = np.nonzero(pairs.any(axis=(0, 2)) & np.asarray(evaluated))[0]

@@ -798,8 +798,9 @@ def test_map_spare_allows_what_a_likely_proposal_leaving_the_road_costs(models):
 def test_pedestrians_plan_on_their_proposals(models):
   """pedestrian_plan: object 3 of make_scene made a pedestrian gets its likeliest proposal
   ("top") in every sample, or ("drawn") on a warm replan the proposal nearest its previous plan
-  in sample 0 and proposals in the others; the vehicles' samples are the denoiser's either way,
-  the same draws as "sample"."""
+  in sample 0 and proposals in the others, ("mixed") so in the first half of the samples and the
+  denoiser's in the rest; the vehicles' samples are the denoiser's either way, the same draws as
+  "sample"."""
   from pcdiff_jax.policy import planning
   from pcdiff_jax.sim.datatypes import ObjectType
   state = env.reset(make_scene(num_steps=91))
@@ -833,5 +834,11 @@ def test_pedestrians_plan_on_their_proposals(models):
   drawn = np.asarray(drawn)[:, slot]
   np.testing.assert_allclose(drawn[0], props[least], atol=1e-5)
   assert all(np.abs(props - y).max(-1).min() < 1e-5 for y in drawn[1:])   # each another proposal
+  # "mixed": the first half of the samples as "drawn" (here sample 0), the rest the denoiser's.
+  _, mixed = draw("mixed", warm)
+  _, warm_sampled = draw("sample", warm)
+  np.testing.assert_allclose(np.asarray(mixed)[0, slot], props[least], atol=1e-5)
+  np.testing.assert_array_equal(np.asarray(mixed)[1:, slot], np.asarray(warm_sampled)[1:, slot])
+  np.testing.assert_array_equal(np.asarray(mixed)[:, ~walker], np.asarray(warm_sampled)[:, ~walker])
   with pytest.raises(ValueError, match="pedestrian_plan"):
     policy.actor(CFG, policy.PolicyConfig(pedestrian_plan="walk"))

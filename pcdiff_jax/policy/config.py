@@ -29,9 +29,12 @@ class PolicyConfig:
     pedestrian_plan: "sample" plans pedestrians with the denoiser, as every other agent; "top"
       puts each pedestrian on its likeliest proposal in every sample; "drawn" on its mode in
       sample 0 (the likeliest proposal, or at a warm replan the one nearest its previous plan)
-      and on a proposal drawn by probability in each other sample, for the selection to choose.
-      On real scenes the denoiser's pedestrian samples scatter and leave many walkers standing;
-      on the proposals they walk, and collide more ("Ablation: pedestrians on their proposals").
+      and on a proposal drawn by probability in each other sample, for the selection to choose;
+      "mixed" so in the first half of the samples, the denoiser's in the other half, so a walker
+      whose likely proposals all run into a parked car can still be kept off it. On real scenes
+      the denoiser's pedestrian samples scatter and leave many walkers standing; on the
+      proposals alone they walk, and walk into parked cars ("Ablation: pedestrians on their
+      proposals").
 
   Replanning:
     replan_every: simulator steps between plans (2: a plan at 5 Hz, its first two actions
@@ -148,11 +151,11 @@ class PolicyConfig:
   follow_crossing: bool = True
   rear_guard: bool = True
   cruise_hold: tuple[float, float] = (15.0, 1.0)
-  pedestrian_plan: str = "sample"
+  pedestrian_plan: str = "mixed"
 
 
 EXECUTE = ("actions", "track")
-PEDESTRIAN_PLANS = ("sample", "top", "drawn")
+PEDESTRIAN_PLANS = ("sample", "top", "drawn", "mixed")
 
 
 def with_overrides(policy: PolicyConfig, overrides) -> PolicyConfig:

@@ -117,11 +117,13 @@ def pedestrians_on_proposals(y0: Array, cond: planner.Conditioning, feats, how: 
   (`PolicyConfig.pedestrian_plan`): "top", its likeliest in every sample; "drawn", in sample 0
   its mode (the likeliest, or at a warm replan the one nearest its previous plan (1, A, d) where
   has (A,)) and in each other sample one drawn by probability, for the selection to choose
-  from; "sample" keeps y0. docs/RESULTS.md, "Ablation: pedestrians on their proposals"."""
+  from; "mixed", so in the first half of the samples and the denoiser's in the rest, so the
+  selection can still move a walker off proposals that all run into something; "sample" keeps
+  y0. docs/RESULTS.md, "Ablation: pedestrians on their proposals"."""
   if how == "sample":
     return y0
   index = jnp.broadcast_to(jnp.argmax(cond.probs, -1), y0.shape[:-1])               # (S, A)
-  if how == "drawn":
+  if how in ("drawn", "mixed"):
     mode = index
     if previous is not None:
       mode = jnp.where(has[None], planner.nearest_proposal(cond, jnp.broadcast_to(previous, y0.shape)), index)
@@ -130,7 +132,10 @@ def pedestrians_on_proposals(y0: Array, cond: planner.Conditioning, feats, how: 
   chosen = jnp.take_along_axis(jnp.broadcast_to(cond.proposals, y0.shape[:-1] + cond.proposals.shape[-2:]),
                                index[..., None, None], axis=-2)[..., 0, :]          # (S, A, d)
   walker = feats.agent_valid & (feats.agent_types == ObjectType.PEDESTRIAN)         # (A,)
-  return jnp.where(walker[None, :, None], chosen, y0)
+  on_proposal = walker[None, :, None]
+  if how == "mixed":
+    on_proposal = on_proposal & (jnp.arange(y0.shape[0]) < max(y0.shape[0] // 2, 1))[:, None, None]
+  return jnp.where(on_proposal, chosen, y0)
 
 
 def decode(y0: Array, models: Models, scene: Encoded, state: SimulatorState, cfg: Config,

@@ -17,7 +17,9 @@ that batches and seeds sum exactly:
   object that replays its log and so cannot react (the SDC on its log, objects beyond the
   reactive set: rear-ended agents, mostly; "Where ours collides");
   `vehicle_collided` counts evaluated vehicles hitting another vehicle (WOMD
-  logs have pedestrian boxes that overlap each other and parked cars).
+  logs have pedestrian boxes that overlap each other and parked cars);
+  `vru_vehicle_collided` evaluated pedestrians and cyclists overlapping a vehicle, so a
+  walker struck by a car is told apart from walkers overlapping in a group.
 - off-road: an evaluated vehicle on the road at the start step is off it at
   some later step (`became_offroad`); vehicles that start off the road are
   counted separately (`start_offroad`). Pedestrians and cyclists are not
@@ -146,6 +148,8 @@ class EventCounts:
   collided_with_replayed: Array  # collided, with an object replaying its log among the partners
   vehicle_collided: Array      # evaluated vehicles overlapping another vehicle
   num_vehicles: Array          # evaluated vehicles
+  vru_vehicle_collided: Array  # evaluated pedestrians and cyclists overlapping a vehicle
+  num_vrus: Array              # evaluated pedestrians and cyclists
   start_offroad: Array         # ... off the road at the start step
   became_offroad: Array        # ... on the road at the start, off it later
   offroad_any: Array           # ... off the road at some simulated step
@@ -161,6 +165,7 @@ class EventCounts:
         "collision_any_rate": total.collided_any / max(total.num_evaluated, 1.0),
         "collision_with_replayed_rate": total.collided_with_replayed / max(total.num_evaluated, 1.0),
         "vehicle_collision_rate": total.vehicle_collided / max(total.num_vehicles, 1.0),
+        "vru_vehicle_collision_rate": total.vru_vehicle_collided / max(total.num_vrus, 1.0),
         "offroad_rate": total.became_offroad / max(on_road, 1.0),
         "offroad_any_rate": total.offroad_any / max(total.num_vehicles, 1.0),
         # The share of offroad_rate (same denominator) from agents that left
@@ -170,6 +175,7 @@ class EventCounts:
         "start_offroad_fraction": total.start_offroad / max(total.num_vehicles, 1.0),
         "num_evaluated": total.num_evaluated,
         "num_vehicles": total.num_vehicles,
+        "num_vrus": total.num_vrus,
     }
 
 
@@ -209,6 +215,7 @@ def event_counts(sim: Trajectory, log: Trajectory, roadgraph: RoadgraphPoints,
   collided_with_replayed = jnp.any(new_pairs & replayed[..., None, None, :], axis=(-3, -1))
   is_vehicle = object_types == ObjectType.VEHICLE
   vehicle_collided = jnp.any(new_pairs & is_vehicle[..., None, None, :], axis=(-3, -1))
+  vru = evaluated & ((object_types == ObjectType.PEDESTRIAN) | (object_types == ObjectType.CYCLIST))
 
   if max_evaluated is None:
     off = offroad(sim, roadgraph, max_edge_points)[..., start_step:]           # (..., O, T')
@@ -230,6 +237,8 @@ def event_counts(sim: Trajectory, log: Trajectory, roadgraph: RoadgraphPoints,
       collided_with_replayed=count(collided_with_replayed & evaluated),
       vehicle_collided=count(vehicle_collided & vehicle),
       num_vehicles=count(vehicle),
+      vru_vehicle_collided=count(vehicle_collided & vru),
+      num_vrus=count(vru),
       start_offroad=count(start_off & vehicle),
       became_offroad=count(off_later & ~start_off & vehicle),
       offroad_any=count(off_later & vehicle),
