@@ -799,8 +799,9 @@ def test_pedestrians_plan_on_their_proposals(models):
   """pedestrian_plan: object 3 of make_scene made a pedestrian gets its likeliest proposal
   ("top") in every sample, or ("drawn") on a warm replan the proposal nearest its previous plan
   in sample 0 and proposals in the others, ("mixed") so in the first half of the samples and the
-  denoiser's in the rest; the vehicles' samples are the denoiser's either way, the same draws as
-  "sample"."""
+  denoiser's in the rest, ("steady") as "mixed" with its speed and heading held in sample 0 if it
+  walks; the vehicles' samples are the denoiser's either way, the same draws as "sample"; a
+  guided plan keeps the pedestrian's guided sample."""
   from pcdiff_jax.policy import planning
   from pcdiff_jax.sim.datatypes import ObjectType
   state = env.reset(make_scene(num_steps=91))
@@ -811,9 +812,11 @@ def test_pedestrians_plan_on_their_proposals(models):
   road = planning.road_for(state, pcfg)
   rng = jax.random.key(0)
 
-  @functools.partial(jax.jit, static_argnums=0)
-  def draw(how, warm):
+  @functools.partial(jax.jit, static_argnums=(0, 2))
+  def draw(how, warm, guidance=None):
     p = dataclasses.replace(pcfg, pedestrian_plan=how)
+    if guidance is not None:
+      p = dataclasses.replace(p, guidance=guidance)
     scene = planning.encode(models, state, CFG, p)
     return scene, planning.sample(models, scene, CFG, p, rng, -1, road, warm=warm)
 
@@ -840,5 +843,61 @@ def test_pedestrians_plan_on_their_proposals(models):
   np.testing.assert_allclose(np.asarray(mixed)[0, slot], props[least], atol=1e-5)
   np.testing.assert_array_equal(np.asarray(mixed)[1:, slot], np.asarray(warm_sampled)[1:, slot])
   np.testing.assert_array_equal(np.asarray(mixed)[:, ~walker], np.asarray(warm_sampled)[:, ~walker])
+  # "steady": sample 0 holds the pedestrian's speed and heading (zero actions) where
+  # `holds_pace` says, else its mode (a jittery track's speed here); the rest as "mixed".
+  recent = float(planning.recent_speed(scene.feats, CFG.kinematics.dt)[slot])
+  zero = np.asarray(latent.encode(jnp.zeros((models.stats.horizon, 2)), models.stats))
+  mode = jnp.broadcast_to(jnp.asarray(props[np.argmax(probs)]), warm_sampled.shape[1:])
+  for speed in (recent + 0.2, recent + 2.0):
+    cond = scene.cond.replace(speed=scene.cond.speed.at[:, slot].set(speed))
+    steady = planning.pedestrians_on_proposals(warm_sampled, cond, scene.feats, "steady", rng,
+                                               stats=models.stats, kinematics=CFG.kinematics)
+    holds = bool(planning.holds_pace(mode, cond.speed[0], scene.feats, models.stats, CFG.kinematics)[slot])
+    np.testing.assert_allclose(np.asarray(steady)[0, slot], zero if holds else props[np.argmax(probs)], atol=1e-5)
+    np.testing.assert_array_equal(np.asarray(steady)[1:], np.asarray(warm_sampled)[1:])
+    np.testing.assert_array_equal(np.asarray(steady)[:, ~walker], np.asarray(warm_sampled)[:, ~walker])
+  assert not holds   # the jittery speed
+  # A guided plan keeps every agent's guided sample: a proposal would bypass the guidance.
+  from pcdiff_jax.model.guidance import GuidanceConfig
+  objective = GuidanceConfig(mode="objective")
+  np.testing.assert_array_equal(np.asarray(draw("mixed", None, objective)[1]),
+                                np.asarray(draw("sample", None, objective)[1]))
   with pytest.raises(ValueError, match="pedestrian_plan"):
     policy.actor(CFG, policy.PolicyConfig(pedestrian_plan="walk"))
+
+
+def test_recent_speed():
+  """recent_speed: the mean speed over the last second of valid history positions (agent
+  frame, the current step at the origin); a track younger than that spans what it has, one
+  with no earlier step has 0."""
+  import types
+  from pcdiff_jax.policy import planning
+  steps = np.arange(11)
+  hist = np.zeros((3, 11, 4), np.float32)
+  hist[0, :, 0] = -1.2 * (10 - steps) * 0.1        # 1.2 m/s for 1 s
+  hist[1, :, 1] = 0.5 * (10 - steps) * 0.1         # 0.5 m/s sideways, valid for 0.3 s
+  valid = np.ones((3, 11), bool)
+  valid[1, :7] = False
+  valid[2, :10] = False                              # only the current step
+  feats = types.SimpleNamespace(agent_history=jnp.asarray(hist), agent_history_valid=jnp.asarray(valid))
+  np.testing.assert_allclose(np.asarray(planning.recent_speed(feats, 0.1)), [1.2, 0.5, 0.0], atol=1e-5)
+
+
+def test_holds_pace(models):
+  """holds_pace: a steady plan suits a walker whose tracked speed is its last second's, not a
+  jittery track; with min_travel, not one whose mode stops (at a kerb) either."""
+  import types
+  from pcdiff_jax.model import latent
+  from pcdiff_jax.policy import planning
+  steps = np.arange(11)
+  hist = np.zeros((3, 11, 4), np.float32)
+  hist[:, :, 0] = -1.2 * (10 - steps) * 0.1                                   # 1.2 m/s for 1 s
+  feats = types.SimpleNamespace(agent_history=jnp.asarray(hist), agent_history_valid=jnp.ones((3, 11), bool))
+  horizon = models.stats.horizon
+  walk = jnp.zeros((horizon, 2))
+  stop = walk.at[:10, 0].set(-1.2)                                              # stops within 1 s
+  mode = latent.encode(jnp.stack([walk, stop, walk]), models.stats)           # (3, d)
+  speed = jnp.asarray([1.2, 1.2, 3.5])                                          # the last: jittery
+  holds = lambda travel: np.asarray(planning.holds_pace(mode, speed, feats, models.stats, CFG.kinematics, travel))
+  np.testing.assert_array_equal(holds(0.5), [True, False, False])
+  np.testing.assert_array_equal(holds(0.0), [True, True, False])   # the default: the speed check only

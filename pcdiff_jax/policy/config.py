@@ -31,10 +31,16 @@ class PolicyConfig:
       sample 0 (the likeliest proposal, or at a warm replan the one nearest its previous plan)
       and on a proposal drawn by probability in each other sample, for the selection to choose;
       "mixed" so in the first half of the samples, the denoiser's in the other half, so a walker
-      whose likely proposals all run into a parked car can still be kept off it. On real scenes
+      whose likely proposals all run into a parked car can still be kept off it; "steady" (the
+      default) as "mixed" with the walker's speed and heading held in sample 0 (its mode in
+      sample 1) where its tracked speed is that of its last second of positions. Guided plans
+      keep every agent's guided sample (a proposal would bypass the guidance). On real scenes
       the denoiser's pedestrian samples scatter and leave many walkers standing; on the
-      proposals alone they walk, and walk into parked cars ("Ablation: pedestrians on their
-      proposals").
+      proposals alone they walk, and walk into parked cars, and the likeliest proposal walks
+      slower than the walker ("Ablation: pedestrians on their proposals", "Ablation: a walker's
+      steady plan").
+    pedestrian_steady_travel: with "steady", > 0 also keeps a walker on its mode where the mode
+      travels less than this share of the steady plan's distance (a walker stopping at a kerb).
 
   Replanning:
     replan_every: simulator steps between plans (2: a plan at 5 Hz, its first two actions
@@ -151,11 +157,12 @@ class PolicyConfig:
   follow_crossing: bool = True
   rear_guard: bool = True
   cruise_hold: tuple[float, float] = (15.0, 1.0)
-  pedestrian_plan: str = "mixed"
+  pedestrian_plan: str = "steady"
+  pedestrian_steady_travel: float = 0.0
 
 
 EXECUTE = ("actions", "track")
-PEDESTRIAN_PLANS = ("sample", "top", "drawn", "mixed")
+PEDESTRIAN_PLANS = ("sample", "top", "drawn", "mixed", "steady")
 
 
 def with_overrides(policy: PolicyConfig, overrides) -> PolicyConfig:
@@ -190,6 +197,8 @@ def validate(cfg: Config, policy: PolicyConfig) -> None:
     raise ValueError(f"execute must be one of {EXECUTE}, got {policy.execute!r}")
   if policy.pedestrian_plan not in PEDESTRIAN_PLANS:
     raise ValueError(f"pedestrian_plan must be one of {PEDESTRIAN_PLANS}, got {policy.pedestrian_plan!r}")
+  if not 0.0 <= policy.pedestrian_steady_travel <= 1.0:
+    raise ValueError(f"pedestrian_steady_travel must be in [0, 1], got {policy.pedestrian_steady_travel}")
   if not 2 <= policy.track_steps <= cfg.encoder.horizon:
     raise ValueError(f"track_steps must be in [2, {cfg.encoder.horizon}], got {policy.track_steps}")
   if not 0 <= policy.warm_step < cfg.diffusion.num_steps:

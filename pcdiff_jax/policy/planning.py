@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from pcdiff_jax.config import Config
+from pcdiff_jax.config import Config, KinematicsConfig
 from pcdiff_jax.model import features as features_lib
 from pcdiff_jax.model import guidance as guidance_lib
 from pcdiff_jax.model import latent, planner
@@ -25,6 +25,7 @@ from pcdiff_jax.sim.datatypes import Array, ObjectType, SimulatorState
 from pcdiff_jax.sim.road_field import RoadField
 
 START_GATE_SPEED = 0.5   # m/s: below it an agent is starting (or stopping), not driving
+STEADY_SPEED_TOLERANCE = 0.5   # m/s: a walker's tracked speed this far from its recent one is noise
 
 
 @struct.dataclass
@@ -78,7 +79,7 @@ def sample(models: Models, scene: Encoded, cfg: Config, policy: PolicyConfig, rn
   initial noise (consistent_noise), default drawn from rng. warm: a previous plan to start from
   (warm_start), else the prior; the plan is cold when no modelled agent has a previous one.
   A denoiser with anchor inputs gets them here (`planner.draw_anchor`); pedestrians go on their
-  proposals as policy.pedestrian_plan says (`pedestrians_on_proposals`)."""
+  proposals as policy.pedestrian_plan says (`pedestrians_on_proposals`), unguided plans only."""
   feats, cond = scene.feats, scene.cond
   init_noise = None if noise is None else noise[feats.agent_index][None]   # (1, A, d)
   if init_noise is not None and policy.select_samples > 1:
@@ -108,34 +109,73 @@ def sample(models: Models, scene: Encoded, cfg: Config, policy: PolicyConfig, rn
         warm_guide_steps=g.guide_steps(policy.warm_ddim_steps) if guide is not None else None,
         init_noise=init_noise)
   k_walk = jax.random.fold_in(rng, 2)   # rng itself untouched: "sample" draws as before
-  return pedestrians_on_proposals(y0, cond, feats, policy.pedestrian_plan, k_walk, previous, has)
+  # A proposal bypasses the guidance, so a guided plan keeps every agent's guided sample.
+  walk = policy.pedestrian_plan if guide is None else "sample"
+  return pedestrians_on_proposals(y0, cond, feats, walk, k_walk, previous, has, models.stats,
+                                  cfg.kinematics, policy.pedestrian_steady_travel)
 
 
 def pedestrians_on_proposals(y0: Array, cond: planner.Conditioning, feats, how: str, rng: Array,
-                             previous: Optional[Array] = None, has: Optional[Array] = None) -> Array:
+                             previous: Optional[Array] = None, has: Optional[Array] = None,
+                             stats: Optional[latent.LatentStats] = None,
+                             kinematics: KinematicsConfig = KinematicsConfig(),
+                             steady_travel: float = 0.0) -> Array:
   """(S, A, d) the samples y0 with each pedestrian's latent replaced by one of its proposals
   (`PolicyConfig.pedestrian_plan`): "top", its likeliest in every sample; "drawn", in sample 0
   its mode (the likeliest, or at a warm replan the one nearest its previous plan (1, A, d) where
   has (A,)) and in each other sample one drawn by probability, for the selection to choose
   from; "mixed", so in the first half of the samples and the denoiser's in the rest, so the
-  selection can still move a walker off proposals that all run into something; "sample" keeps
-  y0. docs/RESULTS.md, "Ablation: pedestrians on their proposals"."""
+  selection can still move a walker off proposals that all run into something; "steady" as
+  "mixed" with the walker's steady plan (its speed and heading held: zero actions, encoded
+  with stats) in sample 0 where it holds its pace (`holds_pace`, steady_travel its
+  min_travel) and its mode in sample 1; "sample" keeps y0. docs/RESULTS.md,
+  "Ablation: pedestrians on their proposals"."""
   if how == "sample":
     return y0
   index = jnp.broadcast_to(jnp.argmax(cond.probs, -1), y0.shape[:-1])               # (S, A)
-  if how in ("drawn", "mixed"):
+  if how in ("drawn", "mixed", "steady"):
     mode = index
     if previous is not None:
       mode = jnp.where(has[None], planner.nearest_proposal(cond, jnp.broadcast_to(previous, y0.shape)), index)
     drawn = jax.random.categorical(rng, jnp.log(jnp.maximum(cond.probs, 1e-9)))      # (S, A)
-    index = jnp.where((jnp.arange(y0.shape[0]) == 0)[:, None], mode, drawn)
+    on_mode = 2 if how == "steady" else 1   # the samples on the mode
+    index = jnp.where((jnp.arange(y0.shape[0]) < on_mode)[:, None], mode, drawn)
   chosen = jnp.take_along_axis(jnp.broadcast_to(cond.proposals, y0.shape[:-1] + cond.proposals.shape[-2:]),
                                index[..., None, None], axis=-2)[..., 0, :]          # (S, A, d)
+  if how == "steady":
+    steady = latent.encode(jnp.zeros((stats.horizon, 2)), stats)                    # (d,)
+    holds = holds_pace(chosen[1], cond.speed[0], feats, stats, kinematics, steady_travel)   # (A,)
+    chosen = chosen.at[0].set(jnp.where(holds[:, None], steady, chosen[0]))
   walker = feats.agent_valid & (feats.agent_types == ObjectType.PEDESTRIAN)         # (A,)
   on_proposal = walker[None, :, None]
-  if how == "mixed":
+  if how in ("mixed", "steady"):
     on_proposal = on_proposal & (jnp.arange(y0.shape[0]) < max(y0.shape[0] // 2, 1))[:, None, None]
   return jnp.where(on_proposal, chosen, y0)
+
+
+def holds_pace(mode: Array, speed: Array, feats, stats: latent.LatentStats,
+               kinematics: KinematicsConfig, min_travel: float = 0.0) -> Array:
+  """(A,) the agents a steady plan suits: the tracked speed (A,) is that of the last second of
+  positions (`recent_speed`; a jittery track's is noise) and, with min_travel > 0, the mode
+  (A, d), which reads the map and the lights, travels at least that share of the steady plan's
+  distance (a walker that reaches the kerb to wait keeps its mode)."""
+  ok = jnp.abs(jnp.abs(speed) - recent_speed(feats, kinematics.dt)) < STEADY_SPEED_TOLERANCE
+  if min_travel > 0:
+    end = latent.rollout(mode, speed, stats, kinematics)[..., -1, :2]               # (A, 2)
+    ok &= jnp.linalg.norm(end, axis=-1) >= min_travel * jnp.abs(speed) * stats.horizon * kinematics.dt
+  return ok
+
+
+def recent_speed(feats, dt: float, seconds: float = 1.0) -> Array:
+  """(A,) each agent's mean speed over its last `seconds` of history positions (as far back as
+  it is valid; 0 with no earlier step)."""
+  hist, valid = feats.agent_history[..., :2], feats.agent_history_valid            # (A, H, 2), (A, H)
+  now = hist.shape[-2] - 1
+  steps = jnp.arange(hist.shape[-2])
+  earliest = jnp.min(jnp.where(valid & (steps >= now - round(seconds / dt)), steps, now), -1)  # (A,)
+  back = jnp.take_along_axis(hist, earliest[:, None, None], axis=-2)[:, 0]        # (A, 2)
+  span = jnp.maximum(now - earliest, 1) * dt
+  return jnp.where(earliest < now, jnp.linalg.norm(hist[:, now] - back, axis=-1) / span, 0.0)
 
 
 def decode(y0: Array, models: Models, scene: Encoded, state: SimulatorState, cfg: Config,
