@@ -128,8 +128,8 @@ def pedestrians_on_proposals(y0: Array, cond: planner.Conditioning, feats, how: 
   selection can still move a walker off proposals that all run into something; "steady" as
   "mixed" with the walker's steady plan (its speed and heading held: zero actions, encoded
   with stats) in sample 0 where it holds its pace (`holds_pace`, steady_travel its
-  min_travel) and its mode in sample 1; "sample" keeps y0. docs/RESULTS.md,
-  "Ablation: pedestrians on their proposals"."""
+  min_travel) and its mode in sample 1; "sample" keeps y0. docs/RESULTS.md, "Ablation:
+  pedestrians on their proposals" and "Ablation: a walker's steady plan"."""
   if how == "sample":
     return y0
   index = jnp.broadcast_to(jnp.argmax(cond.probs, -1), y0.shape[:-1])               # (S, A)
@@ -144,7 +144,8 @@ def pedestrians_on_proposals(y0: Array, cond: planner.Conditioning, feats, how: 
                                index[..., None, None], axis=-2)[..., 0, :]          # (S, A, d)
   if how == "steady":
     steady = latent.encode(jnp.zeros((stats.horizon, 2)), stats)                    # (d,)
-    holds = holds_pace(chosen[1], cond.speed[0], feats, stats, kinematics, steady_travel)   # (A,)
+    mode_plan = chosen[min(1, y0.shape[0] - 1)]                                      # (A, d)
+    holds = holds_pace(mode_plan, cond.speed[0], feats, stats, kinematics, steady_travel)  # (A,)
     chosen = chosen.at[0].set(jnp.where(holds[:, None], steady, chosen[0]))
   walker = feats.agent_valid & (feats.agent_types == ObjectType.PEDESTRIAN)         # (A,)
   on_proposal = walker[None, :, None]
