@@ -78,7 +78,7 @@ def _round_policy(name: str = "v8"):
   return policy.PolicyConfig(select_samples=1, replan_every=1, warm_step=30, warm_ddim_steps=2, select_stride=1,
                              temporal_ensemble=(0.3, 0.0), jerk_limit=(0.0, 0.0), stop_hold=False,
                              still_gate=(0.0, 0.0), max_curvature=0.0, follow=(0.0, 0.0),
-                             cruise_hold=(0.0, 0.0), pedestrian_plan="sample")
+                             cruise_hold=(0.0, 0.0), pedestrian_plan="sample", cyclist_plan="sample")
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -97,6 +97,9 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--drop-log-overlaps", action="store_true",
                  help="leave out of training the agents whose logged box overlaps another within the "
                       "horizon (real labels of queued and parked cars overlap; synthetic logs never do)")
+  p.add_argument("--drop-log-offroad", action="store_true",
+                 help="leave out of training the vehicles whose logged box leaves the mapped road within "
+                      "the horizon (real drivers turn into lots and driveways the map does not hold)")
   p.add_argument("--target-fit", type=float, default=None, metavar="SIGMA",
                  help="m: targets are latents fitted to the logged positions (latent.fit_to_path; "
                       "1 for real logs); default: the model's (the projection)")
@@ -313,7 +316,8 @@ def main(argv=None) -> int:
       actor = simpl_ar.simpl_ar(run_cfg)
     ocfg = closed_loop.OnPolicyConfig(times=tuple(args.times), max_offset=args.max_offset, mix=args.mix,
                                       lane_tail=not args.straight_tail, targets=args.targets,
-                                      drop_log_overlaps=args.drop_log_overlaps)
+                                      drop_log_overlaps=args.drop_log_overlaps,
+                                      drop_log_offroad=args.drop_log_offroad)
     teacher = None
     if args.targets == "guided":
       from pcdiff_jax.model import guidance
@@ -333,7 +337,8 @@ def main(argv=None) -> int:
     real, round_files = None, files
     if args.real_data:
       round_files = womd.expand_paths(args.real_data)
-      real_spec = dataclasses.replace(spec, drop_log_overlaps=args.drop_log_overlaps)
+      real_spec = dataclasses.replace(spec, drop_log_overlaps=args.drop_log_overlaps,
+                                      drop_log_offroad=args.drop_log_offroad)
       real, _ = data_lib.load_or_build(round_files, real_spec, cache, "real", progress=not args.no_progress)
     os.makedirs(args.workdir, exist_ok=True)
     history, gathered = [], [_read_extra(path, logged) for path in _expand(args.extra_on_policy)]

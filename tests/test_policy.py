@@ -850,8 +850,8 @@ def test_pedestrians_plan_on_their_proposals(models):
   zero = np.asarray(latent.encode(jnp.zeros((models.stats.horizon, 2)), models.stats))
   for speed, expected in ((recent + 0.2, zero), (recent + 2.0, props[np.argmax(probs)])):
     cond = scene.cond.replace(speed=scene.cond.speed.at[:, slot].set(speed))
-    steady = planning.pedestrians_on_proposals(warm_sampled, cond, scene.feats, "steady", rng,
-                                               stats=models.stats, kinematics=CFG.kinematics)
+    steady = planning.on_proposals(warm_sampled, cond, scene.feats, "steady", rng,
+                                   stats=models.stats, kinematics=CFG.kinematics)
     np.testing.assert_allclose(np.asarray(steady)[0, slot], expected, atol=1e-5)
     np.testing.assert_array_equal(np.asarray(steady)[1:], np.asarray(warm_sampled)[1:])
     np.testing.assert_array_equal(np.asarray(steady)[:, ~walker], np.asarray(warm_sampled)[:, ~walker])
@@ -862,6 +862,15 @@ def test_pedestrians_plan_on_their_proposals(models):
                                 np.asarray(draw("sample", None, objective)[1]))
   with pytest.raises(ValueError, match="pedestrian_plan"):
     policy.actor(CFG, policy.PolicyConfig(pedestrian_plan="walk"))
+  # cyclist_plan: the same plans for the cyclists alone (kind), none for the pedestrian.
+  types = scene.feats.agent_types
+  ridden = planning.on_proposals(sampled, scene.cond, scene.feats, "top", rng, kind=ObjectType.CYCLIST)
+  np.testing.assert_array_equal(np.asarray(ridden), np.asarray(sampled))
+  rider = scene.feats.replace(agent_types=types.at[slot].set(ObjectType.CYCLIST))
+  ridden = planning.on_proposals(sampled, scene.cond, rider, "top", rng, kind=ObjectType.CYCLIST)
+  np.testing.assert_array_equal(np.asarray(ridden), np.asarray(top))
+  with pytest.raises(ValueError, match="cyclist_plan"):
+    policy.actor(CFG, policy.PolicyConfig(cyclist_plan="ride"))
 
 
 def test_recent_speed():

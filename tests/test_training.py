@@ -107,6 +107,31 @@ def test_agents_whose_log_overlaps_another_box_can_be_left_out_of_training():
       [], data_lib.CacheSpec(CFG.features, drop_log_overlaps=True))
 
 
+def test_vehicles_whose_log_leaves_the_road_can_be_left_out_of_training():
+  """Object 1's log drifts left from y = 1.5 m at t = 10 across the road edge at y = 4 (its box
+  corner from about step 40): with drop_log_offroad it gets no valid target step, the others
+  keep theirs, object 2 too (off the road from the start: parked, not leaving); a pedestrian
+  that does the same stays in, and a horizon that ends before the edge drops nobody."""
+  state = make_scene(num_steps=91)
+  log = state.log_trajectory
+  drift = log.y.at[1].set(1.0 + 0.05 * jnp.arange(91, dtype=jnp.float32))
+  state = state.replace(log_trajectory=log.replace(y=drift), sim_trajectory=log.replace(y=drift))
+  at10 = state.replace(sim_trajectory=state.log_trajectory, timestep=jnp.asarray(10, jnp.int32))
+  idx = jnp.arange(4)
+  leaves = jax.jit(data_lib.log_leaves_road_ahead, static_argnums=2)
+  assert leaves(at10, idx, 80).tolist() == [False, True, False, False]
+  assert not leaves(at10, idx, 20).any()
+  md = at10.object_metadata
+  walker = at10.replace(object_metadata=md.replace(object_types=md.object_types.at[1].set(2)))
+  assert not leaves(walker, idx, 80).any()
+  ex = jax.jit(lambda s: data_lib.example_at(s, 10, CFG.features, 80, drop_log_offroad=True))(state)
+  trained = {int(o): bool(v.any()) for o, v, ok in zip(ex.feats.agent_index, ex.targets.future_valid,
+                                                       ex.feats.agent_valid) if ok}
+  assert trained == {0: True, 1: False, 2: True, 3: True}
+  assert data_lib.cache_key([], data_lib.CacheSpec(CFG.features)) != data_lib.cache_key(
+      [], data_lib.CacheSpec(CFG.features, drop_log_offroad=True))
+
+
 def test_diffusion_loss_finite_with_masked_agents(scene_example):
   from pcdiff_jax.model import encoder, latent
   from pcdiff_jax.training import diffusion_stage

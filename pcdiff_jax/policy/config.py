@@ -41,6 +41,9 @@ class PolicyConfig:
       steady plan").
     pedestrian_steady_travel: with "steady", > 0 also keeps a walker on its mode where the mode
       travels less than this share of the steady plan's distance (a walker stopping at a kerb).
+    cyclist_plan: the same choices for cyclists; "steady" (the default) puts a cyclist's steady
+      plan in sample 0: the denoiser's and the proposals' cyclists brake and trail constant
+      velocity ("Ablation: a cyclist's steady plan").
 
   Replanning:
     replan_every: simulator steps between plans (2: a plan at 5 Hz, its first two actions
@@ -159,10 +162,11 @@ class PolicyConfig:
   cruise_hold: tuple[float, float] = (15.0, 1.0)
   pedestrian_plan: str = "steady"
   pedestrian_steady_travel: float = 0.0
+  cyclist_plan: str = "steady"
 
 
 EXECUTE = ("actions", "track")
-PEDESTRIAN_PLANS = ("sample", "top", "drawn", "mixed", "steady")
+PROPOSAL_PLANS = ("sample", "top", "drawn", "mixed", "steady")   # pedestrian_plan, cyclist_plan
 
 
 def with_overrides(policy: PolicyConfig, overrides) -> PolicyConfig:
@@ -195,8 +199,10 @@ def validate(cfg: Config, policy: PolicyConfig) -> None:
     raise ValueError(f"prior_centre must be 'mean' or 'top1', got {policy.prior_centre!r}")
   if policy.execute not in EXECUTE:
     raise ValueError(f"execute must be one of {EXECUTE}, got {policy.execute!r}")
-  if policy.pedestrian_plan not in PEDESTRIAN_PLANS:
-    raise ValueError(f"pedestrian_plan must be one of {PEDESTRIAN_PLANS}, got {policy.pedestrian_plan!r}")
+  if policy.pedestrian_plan not in PROPOSAL_PLANS:
+    raise ValueError(f"pedestrian_plan must be one of {PROPOSAL_PLANS}, got {policy.pedestrian_plan!r}")
+  if policy.cyclist_plan not in PROPOSAL_PLANS:
+    raise ValueError(f"cyclist_plan must be one of {PROPOSAL_PLANS}, got {policy.cyclist_plan!r}")
   if not 0.0 <= policy.pedestrian_steady_travel <= 1.0:
     raise ValueError(f"pedestrian_steady_travel must be in [0, 1], got {policy.pedestrian_steady_travel}")
   if not 2 <= policy.track_steps <= cfg.encoder.horizon:

@@ -79,7 +79,8 @@ def sample(models: Models, scene: Encoded, cfg: Config, policy: PolicyConfig, rn
   initial noise (consistent_noise), default drawn from rng. warm: a previous plan to start from
   (warm_start), else the prior; the plan is cold when no modelled agent has a previous one.
   A denoiser with anchor inputs gets them here (`planner.draw_anchor`); pedestrians go on their
-  proposals as policy.pedestrian_plan says (`pedestrians_on_proposals`), unguided plans only."""
+  proposals as policy.pedestrian_plan says and cyclists as policy.cyclist_plan says
+  (`on_proposals`), unguided plans only."""
   feats, cond = scene.feats, scene.cond
   init_noise = None if noise is None else noise[feats.agent_index][None]   # (1, A, d)
   if init_noise is not None and policy.select_samples > 1:
@@ -111,25 +112,29 @@ def sample(models: Models, scene: Encoded, cfg: Config, policy: PolicyConfig, rn
   k_walk = jax.random.fold_in(rng, 2)   # rng itself untouched: "sample" draws as before
   # A proposal bypasses the guidance, so a guided plan keeps every agent's guided sample.
   walk = policy.pedestrian_plan if guide is None else "sample"
-  return pedestrians_on_proposals(y0, cond, feats, walk, k_walk, previous, has, models.stats,
-                                  cfg.kinematics, policy.pedestrian_steady_travel)
+  ride = policy.cyclist_plan if guide is None else "sample"
+  y0 = on_proposals(y0, cond, feats, walk, k_walk, previous, has, models.stats, cfg.kinematics,
+                    policy.pedestrian_steady_travel)
+  return on_proposals(y0, cond, feats, ride, jax.random.fold_in(rng, 3), previous, has, models.stats,
+                      cfg.kinematics, kind=ObjectType.CYCLIST)
 
 
-def pedestrians_on_proposals(y0: Array, cond: planner.Conditioning, feats, how: str, rng: Array,
-                             previous: Optional[Array] = None, has: Optional[Array] = None,
-                             stats: Optional[latent.LatentStats] = None,
-                             kinematics: KinematicsConfig = KinematicsConfig(),
-                             steady_travel: float = 0.0) -> Array:
-  """(S, A, d) the samples y0 with each pedestrian's latent replaced by one of its proposals
-  (`PolicyConfig.pedestrian_plan`): "top", its likeliest in every sample; "drawn", in sample 0
-  its mode (the likeliest, or at a warm replan the one nearest its previous plan (1, A, d) where
-  has (A,)) and in each other sample one drawn by probability, for the selection to choose
-  from; "mixed", so in the first half of the samples and the denoiser's in the rest, so the
-  selection can still move a walker off proposals that all run into something; "steady" as
-  "mixed" with the walker's steady plan (its speed and heading held: zero actions, encoded
-  with stats) in sample 0 where it holds its pace (`holds_pace`, steady_travel its
-  min_travel) and its mode in sample 1; "sample" keeps y0. docs/RESULTS.md, "Ablation:
-  pedestrians on their proposals" and "Ablation: a walker's steady plan"."""
+def on_proposals(y0: Array, cond: planner.Conditioning, feats, how: str, rng: Array,
+                 previous: Optional[Array] = None, has: Optional[Array] = None,
+                 stats: Optional[latent.LatentStats] = None,
+                 kinematics: KinematicsConfig = KinematicsConfig(),
+                 steady_travel: float = 0.0, kind: int = ObjectType.PEDESTRIAN) -> Array:
+  """(S, A, d) the samples y0 with each agent of this `kind` (pedestrians by default, as
+  `PolicyConfig.pedestrian_plan` says; cyclists as `cyclist_plan` says) on one of its
+  proposals: "top", its likeliest in every sample; "drawn", in sample 0 its mode (the
+  likeliest, or at a warm replan the one nearest its previous plan (1, A, d) where has (A,))
+  and in each other sample one drawn by probability, for the selection to choose from;
+  "mixed", so in the first half of the samples and the denoiser's in the rest, so the
+  selection can still move an agent off proposals that all run into something; "steady" as
+  "mixed" with the agent's steady plan (its speed and heading held: zero actions, encoded with
+  stats) in sample 0 where it holds its pace (`holds_pace`, steady_travel its min_travel) and
+  its mode in sample 1; "sample" keeps y0. docs/RESULTS.md, "Ablation: pedestrians on their
+  proposals", "Ablation: a walker's steady plan" and "Ablation: a cyclist's steady plan"."""
   if how == "sample":
     return y0
   index = jnp.broadcast_to(jnp.argmax(cond.probs, -1), y0.shape[:-1])               # (S, A)
@@ -147,7 +152,7 @@ def pedestrians_on_proposals(y0: Array, cond: planner.Conditioning, feats, how: 
     mode_plan = chosen[min(1, y0.shape[0] - 1)]                                      # (A, d)
     holds = holds_pace(mode_plan, cond.speed[0], feats, stats, kinematics, steady_travel)  # (A,)
     chosen = chosen.at[0].set(jnp.where(holds[:, None], steady, chosen[0]))
-  walker = feats.agent_valid & (feats.agent_types == ObjectType.PEDESTRIAN)         # (A,)
+  walker = feats.agent_valid & (feats.agent_types == kind)                           # (A,)
   on_proposal = walker[None, :, None]
   if how in ("mixed", "steady"):
     on_proposal = on_proposal & (jnp.arange(y0.shape[0]) < max(y0.shape[0] // 2, 1))[:, None, None]

@@ -77,7 +77,8 @@ class OnPolicyConfig:
   simulated pose re-joins the log, `on_policy_targets`) or "guided" (the
   policy's own plan at that state under objective guidance, `guided_targets`:
   guidance distilled into the unguided model); drop_log_overlaps: an agent whose
-  log overlaps another box in the horizon is not trained on (`data.log_overlaps_ahead`)."""
+  log overlaps another box in the horizon is not trained on (`data.log_overlaps_ahead`);
+  drop_log_offroad: nor a vehicle whose log leaves the mapped road (`data.log_leaves_road_ahead`)."""
   times: tuple[int, ...] = (20, 30, 40, 50)
   rejoin_seconds: float = 3.0
   rejoin_speed: float = 2.0
@@ -87,6 +88,7 @@ class OnPolicyConfig:
   lane_tail: bool = True
   targets: str = "rejoin"
   drop_log_overlaps: bool = False
+  drop_log_offroad: bool = False
 
 
 TARGETS = ("rejoin", "guided")
@@ -181,8 +183,7 @@ def on_policy_targets(state: SimulatorState, feats, horizon: int, cfg: OnPolicyC
 
   turned = jnp.abs(geometry.wrap_angle(sim_now[:, 2] - log_now[:, 2]))
   usable = feats.agent_valid & log_valid_now & (offset <= cfg.max_offset) & (turned <= cfg.max_heading)
-  if cfg.drop_log_overlaps:
-    usable = usable & ~data_lib.log_overlaps_ahead(state, idx, horizon)
+  usable = usable & ~data_lib.dropped_labels(state, idx, horizon, cfg.drop_log_overlaps, cfg.drop_log_offroad)
   valid = valid & usable[:, None]
   origin, yaw0 = sim_now[:, None, :2], sim_now[:, None, 2]
   local_xy = geometry.to_local(xy, origin, yaw0)

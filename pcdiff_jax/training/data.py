@@ -38,7 +38,7 @@ from pcdiff_jax.model import features as features_lib
 from pcdiff_jax.model.features import SceneFeatures
 from pcdiff_jax.sim import dynamics, geometry
 from pcdiff_jax.sim import metrics as sim_metrics
-from pcdiff_jax.sim.datatypes import Array, SimulatorState
+from pcdiff_jax.sim.datatypes import Array, ObjectType, SimulatorState
 
 log = logging.getLogger(__name__)
 
@@ -79,14 +79,40 @@ def log_overlaps_ahead(state: SimulatorState, idx: Array, horizon: int) -> Array
   return jnp.any(hits[idx] & ahead[None], axis=-1)
 
 
+def log_leaves_road_ahead(state: SimulatorState, idx: Array, horizon: int) -> Array:
+  """(A,) bool: object idx[a] is a vehicle whose logged box is on the mapped road at
+  t = state.timestep and off it at some step of (t, t + horizon]: real drivers turn into lots
+  and driveways the map does not hold. A car parked off the road stays in. Leaving them out did
+  not keep a real round's cars on the road (docs/RESULTS.md, "Ablation: fine-tuning on real
+  scenes", R10)."""
+  off = sim_metrics.offroad(state.log_trajectory, state.roadgraph_points)   # (O, T_all)
+  steps = jnp.arange(off.shape[-1])
+  ahead = (steps > state.timestep) & (steps <= state.timestep + horizon)
+  now = off[idx, state.timestep]
+  vehicle = state.object_metadata.object_types[idx] == ObjectType.VEHICLE
+  return vehicle & ~now & jnp.any(off[idx] & ahead[None], axis=-1)
+
+
+def dropped_labels(state: SimulatorState, idx: Array, horizon: int, drop_log_overlaps: bool,
+                   drop_log_offroad: bool) -> Array:
+  """(A,) bool: the agents left out of training by the two drops (real scenes' labels)."""
+  drop = jnp.zeros(idx.shape, bool)
+  if drop_log_overlaps:
+    drop = drop | log_overlaps_ahead(state, idx, horizon)
+  if drop_log_offroad:
+    drop = drop | log_leaves_road_ahead(state, idx, horizon)
+  return drop
+
+
 def targets_at(state: SimulatorState, feats: SceneFeatures, horizon: int,
-               drop_log_overlaps: bool = False) -> Targets:
+               drop_log_overlaps: bool = False, drop_log_offroad: bool = False) -> Targets:
   """Targets of one scene at t = state.timestep for the agents of `feats`.
 
   Steps past the end of the log are invalid. Reads the log trajectory for
   the future and the sim trajectory for the pose at t (equal in a dataset).
   drop_log_overlaps: an agent whose logged box overlaps another in the horizon
-  (`log_overlaps_ahead`) gets no valid step, so it is not trained on.
+  (`log_overlaps_ahead`) gets no valid step, so it is not trained on; drop_log_offroad: so
+  a vehicle whose log leaves the mapped road (`log_leaves_road_ahead`).
   """
   t = state.timestep
   idx = feats.agent_index
@@ -97,8 +123,7 @@ def targets_at(state: SimulatorState, feats: SceneFeatures, horizon: int,
   steps = jnp.clip(steps, 0, state.log_trajectory.num_timesteps - 1)
   fut = states[idx][:, steps]                                            # (A, T, 4)
   valid = state.log_trajectory.valid[idx][:, steps] & in_range[None] & feats.agent_valid[:, None]
-  if drop_log_overlaps:
-    valid = valid & ~log_overlaps_ahead(state, idx, horizon)[:, None]
+  valid = valid & ~dropped_labels(state, idx, horizon, drop_log_overlaps, drop_log_offroad)[:, None]
   origin, yaw0 = sim_now[:, None, :2], sim_now[:, None, 2]
   xy = geometry.to_local(fut[..., :2], origin, yaw0)
   yaw = geometry.wrap_angle(fut[..., 2] - yaw0)
@@ -109,13 +134,13 @@ def targets_at(state: SimulatorState, feats: SceneFeatures, horizon: int,
 
 
 def example_at(state: SimulatorState, step: int, config: FeaturesConfig, horizon: int,
-               drop_log_overlaps: bool = False) -> Example:
+               drop_log_overlaps: bool = False, drop_log_offroad: bool = False) -> Example:
   """One scene's Example of the log at replanning step `step`: the state is
   read with its sim trajectory set to the log (a loaded state, as Waymax's,
   has only t = 0 simulated)."""
   state = state.replace(sim_trajectory=state.log_trajectory, timestep=jnp.asarray(step, jnp.int32))
   feats = features_lib.scene_features(state, config)
-  return Example(feats=feats, targets=targets_at(state, feats, horizon, drop_log_overlaps))
+  return Example(feats=feats, targets=targets_at(state, feats, horizon, drop_log_overlaps, drop_log_offroad))
 
 
 # ----------------------------------------------------------------------------
@@ -125,11 +150,13 @@ def example_at(state: SimulatorState, step: int, config: FeaturesConfig, horizon
 @dataclasses.dataclass(frozen=True)
 class CacheSpec:
   """What a cache of logged examples holds: features, horizon, the steps cut into examples, and
-  whether agents whose logged boxes overlap another in the horizon are left out (real scenes)."""
+  whether agents whose logged boxes overlap another in the horizon, or vehicles whose logs leave
+  the mapped road, are left out (real scenes)."""
   features: FeaturesConfig
   horizon: int = 80
   current_steps: tuple[int, ...] = (10,)
   drop_log_overlaps: bool = False
+  drop_log_offroad: bool = False
 
 
 def _flatten(tree) -> dict[str, np.ndarray]:
@@ -145,8 +172,9 @@ def _unflatten(template, arrays: dict[str, np.ndarray]):
 def cache_key(files: Sequence[str], spec: CacheSpec) -> str:
   h = hashlib.sha1()
   fields = dataclasses.asdict(spec)
-  if not fields["drop_log_overlaps"]:   # caches built before the field keep their keys
-    del fields["drop_log_overlaps"]
+  for name in ("drop_log_overlaps", "drop_log_offroad"):
+    if not fields[name]:   # caches built before the field keep their keys
+      del fields[name]
   h.update(json.dumps({"v": _CACHE_VERSION, "spec": fields}, sort_keys=True).encode())
   for f in files:
     st = os.stat(f)
@@ -158,7 +186,7 @@ def cache_key(files: Sequence[str], spec: CacheSpec) -> str:
 def _example_fn(spec: CacheSpec):
   """One jitted builder per spec: the train and val sets share its compile."""
   def one(state):
-    exs = [example_at(state, s, spec.features, spec.horizon, spec.drop_log_overlaps)
+    exs = [example_at(state, s, spec.features, spec.horizon, spec.drop_log_overlaps, spec.drop_log_offroad)
            for s in spec.current_steps]
     return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *exs)      # (S, ...)
   return jax.jit(jax.vmap(one))
