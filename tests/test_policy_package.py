@@ -81,16 +81,21 @@ def _outputs(models) -> dict[str, np.ndarray]:
 
 
 def machine() -> str:
-  """What decides the CPU program's last bits: the jax and jaxlib versions, the CPU's vector units
-  and the XLA flags (conftest.py's, unless XLA_DEFAULTS_ENV is set)."""
+  """What decides the CPU program's last bits: the jax and jaxlib versions, the CPU (XLA tunes
+  its code for the host's model, so two models with the same vector units still round apart),
+  its vector units and the XLA flags (conftest.py's, unless XLA_DEFAULTS_ENV is set)."""
   from importlib import metadata
-  flags = set()
+  flags, cpu = set(), {}
   if pathlib.Path("/proc/cpuinfo").exists():
     for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines():
-      if line.startswith("flags"):
-        flags = set(line.split(":", 1)[1].split()) & {"avx", "avx2", "fma", "avx512f", "avx512_bf16", "amx_tile"}
+      key, _, value = (part.strip() for part in line.partition(":"))
+      if key in ("vendor_id", "cpu family", "model"):
+        cpu.setdefault(key, value)
+      if key == "flags":
+        flags = set(value.split()) & {"avx", "avx2", "fma", "avx512f", "avx512_bf16", "amx_tile"}
         break
-  return (f"jax {metadata.version('jax')} jaxlib {metadata.version('jaxlib')} {platform.machine()} "
+  model = " ".join(f"{k}={v}" for k, v in sorted(cpu.items()))
+  return (f"jax {metadata.version('jax')} jaxlib {metadata.version('jaxlib')} {platform.machine()} {model} "
           f"{' '.join(sorted(flags))} XLA_FLAGS={' '.join(sorted(os.environ.get('XLA_FLAGS', '').split()))}")
 
 
