@@ -158,6 +158,10 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--anchor-inputs", action="store_true",
                  help="pcdiff: condition the denoiser on one proposal per agent (config "
                       "diffusion.denoiser.anchor_inputs; a new zero-initialised projection, trained from here on)")
+  p.add_argument("--map-anchor", choices=("sdc", "agents"), default=None,
+                 help="the map crop of the rounds' rollouts and of every training example (default: the "
+                      "model's; real scenes are wider than the SDC's 256 pieces: 'agents' keeps each "
+                      "agent's road in view, as evaluation runs)")
   p.add_argument("--rollout-batch", type=int, default=4, help="scenes per jitted rollout call")
   p.add_argument("--max-agents", type=int, default=64, help="reactive agents the policy controls")
   p.add_argument("--seed", type=int, default=0)
@@ -299,6 +303,9 @@ def main(argv=None) -> int:
         model_cfg = dataclasses.replace(model_cfg, diffusion=dataclasses.replace(model_cfg.diffusion,
                                                                                  denoiser=den_cfg))
         models = models.replace(denoiser=denoiser.with_new_inputs(models.denoiser, den_cfg))
+    if args.map_anchor is not None:
+      model_cfg = dataclasses.replace(model_cfg, features=dataclasses.replace(
+          model_cfg.features, map_anchor=args.map_anchor))
     if args.target_fit is not None and not simpl:
       model_cfg = dataclasses.replace(model_cfg, diffusion=dataclasses.replace(
           model_cfg.diffusion, target_fit_sigma=args.target_fit))

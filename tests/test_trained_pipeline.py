@@ -122,13 +122,14 @@ def test_finetune_round_moves_both_stages_and_keeps_the_latent(tiny_trained, wom
   argv = ["--from", tiny_trained["shipped"], "--data", womd_path, "--workdir", ft,
           "--cache-dir", os.path.join(tiny_trained["work"], "cache"),
           "--scenes", "1", "--steps", "2", "--encoder-steps", "1", "--times", "12", "13", "--max-agents", "8",
-          "--batch-size", "2", "--round-policy", "defaults", "--no-progress"]
+          "--batch-size", "2", "--round-policy", "defaults", "--map-anchor", "agents", "--no-progress"]
   assert finetune.main(argv) == 0
   # Today's inference defaults with one sample; "v8" (the default) pins what v3-v8's rounds rolled out.
   assert finetune._round_policy("defaults") == dataclasses.replace(policy.PolicyConfig(), select_samples=1)
   assert (finetune._round_policy("v8").warm_step, finetune._round_policy("v8").temporal_ensemble) == (30, (0.3, 0.0))
   tuned, tuned_cfg = diffusion_stage.load(ft)
   assert tuned_cfg.diffusion == cfg.diffusion and tuned_cfg.encoder == cfg.encoder
+  assert tuned_cfg.features.map_anchor == "agents"          # the rounds' and the examples' crop
   for a, b in zip(jax.tree_util.tree_leaves(tuned.stats), jax.tree_util.tree_leaves(models.stats)):
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
   changed = lambda x, y: any(not np.array_equal(np.asarray(a), np.asarray(b)) for a, b in
