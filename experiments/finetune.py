@@ -41,6 +41,13 @@ noisy logged positions (docs/RESULTS.md, "Ablation: fine-tuning on real scenes")
       --real-data ../shared/data/womd_real/train.scenario.tfrecord --target-fit 1 --target-max-rms 3 \
       --round-policy defaults --mix 0.25 --rounds 1 --scenes 80 --steps 300 --learning-rate 5e-5 --workdir runs/r3
 
+--targets chooses the on-policy labels: rejoin (the default) leads each
+agent from its simulated pose back onto its log; guided labels it with the
+model's own plan under objective guidance (the teacher: --teacher-*);
+hybrid keeps the log's way back where it stays on the road and clear of the
+others, the guided plan elsewhere (docs/RESULTS.md, "Ablation: fine-tuning
+on real scenes", R13-R16).
+
 --round-policy chooses what the rounds roll out: v8 (the default) is what every
 round of v3-v8 rolled out, pinned; defaults is today's `PolicyConfig` with one
 sample (v9's four rounds, the first line above, on one GPU).
@@ -139,10 +146,15 @@ def parse_args(argv=None) -> argparse.Namespace:
   p.add_argument("--straight-tail", action="store_true",
                  help="continue a log past its end straight at constant speed (rounds 0-6 of v5), "
                       "not along the lane centres")
-  p.add_argument("--targets", choices=("rejoin", "guided"), default="rejoin",
+  p.add_argument("--targets", choices=("rejoin", "guided", "hybrid"), default="rejoin",
                  help="on-policy labels: rejoin = from the simulated pose back onto the log; guided = the "
                       "model's own cold plan at the visited state under objective guidance (guidance "
-                      "distilled into the unguided policy)")
+                      "distilled into the unguided policy); hybrid = rejoin where that path stays on the "
+                      "road and clear of the others, guided elsewhere")
+  p.add_argument("--rejoin-margin", type=float, default=0.3, metavar="M",
+                 help="hybrid targets: a vehicle keeps its re-joining target only if it stays M m inside the road")
+  p.add_argument("--rejoin-partial-logs", action="store_true",
+                 help="hybrid targets: agents whose log ends before the record's may keep their re-joining target")
   p.add_argument("--teacher-w-map", type=float, default=100.0, help="guided targets: the teacher's w_map")
   p.add_argument("--teacher-w-coll", type=float, default=1.0, help="guided targets: the teacher's w_coll")
   p.add_argument("--teacher-guided-steps", type=int, default=3,
@@ -195,7 +207,7 @@ def parse_args(argv=None) -> argparse.Namespace:
   if args.policy == "simpl-ar" and args.encoder_from:
     p.error("--encoder-from is an option of --policy pcdiff (SIMPL-AR is its encoder)")
   if args.policy == "simpl-ar" and args.targets != "rejoin":
-    p.error("--targets guided is an option of --policy pcdiff")
+    p.error(f"--targets {args.targets} is an option of --policy pcdiff")
   if not 1 <= args.teacher_guided_steps <= 5 or args.teacher_inner_steps < 1:
     p.error("--teacher-guided-steps must be in [1, 5] and --teacher-inner-steps >= 1")
   if args.teacher_w_map < 0 or args.teacher_w_coll < 0:
@@ -324,9 +336,11 @@ def main(argv=None) -> int:
     ocfg = closed_loop.OnPolicyConfig(times=tuple(args.times), max_offset=args.max_offset, mix=args.mix,
                                       lane_tail=not args.straight_tail, targets=args.targets,
                                       drop_log_overlaps=args.drop_log_overlaps,
-                                      drop_log_offroad=args.drop_log_offroad)
+                                      drop_log_offroad=args.drop_log_offroad,
+                                      rejoin_margin=args.rejoin_margin,
+                                      rejoin_whole_logs=not args.rejoin_partial_logs)
     teacher = None
-    if args.targets == "guided":
+    if args.targets != "rejoin":
       from pcdiff_jax.model import guidance
       teacher_guidance = guidance.GuidanceConfig(
           mode="objective", w_map=args.teacher_w_map, w_coll=args.teacher_w_coll,

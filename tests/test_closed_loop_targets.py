@@ -191,6 +191,40 @@ def test_guided_targets_are_the_guided_plan_of_the_visited_state(tiny_models):
     closed_loop.make_collect_fn(None, CFG, closed_loop.OnPolicyConfig(targets="log"))
 
 
+def test_hybrid_targets_keep_the_log_where_its_way_back_is_on_the_road_and_clear():
+  """`clean_rejoin_or`: on make_scene at step 20 (object 2 parked off the road),
+  object 1's way back moved 3 m left (past the edge) and object 3's moved 40 m
+  ahead (into object 0) take the guided target, and so does object 0 (it is
+  hit); object 2 keeps its re-joining target (its path is no further off the
+  road than it is now) unless its log ends before the record's."""
+  from pcdiff_jax.model import guidance
+  state = make_scene(num_steps=91).replace(timestep=jnp.int32(20))
+  feats = _features(state)
+  rejoin = _targets(state, feats, closed_loop.OnPolicyConfig())
+  shift = {1: (0.0, 3.0), 3: (40.0, 0.0)}
+  moved = rejoin.future_xy
+  for obj, d in shift.items():
+    moved = moved.at[_slot(feats, obj)].add(jnp.asarray(d))
+  guided = rejoin.replace(future_speed=jnp.full_like(rejoin.future_speed, -1.0))
+  g = guidance.GuidanceConfig(mode="objective", field_size=64)
+  road = guidance.road_of(state, g)
+  choose = jax.jit(lambda *a: closed_loop.clean_rejoin_or(state, *a, g))
+  on_log = choose(rejoin, guided, feats, road)
+  assert not bool(jnp.any((on_log.future_speed == -1.0) & on_log.future_valid))   # the log: all kept
+  rejoin = rejoin.replace(future_xy=moved)
+  guided = guided.replace(future_xy=moved)
+  got = choose(rejoin, guided, feats, road)
+  took_guided = {obj: bool(got.future_speed[_slot(feats, obj), 0] == -1.0) for obj in range(4)}
+  assert took_guided == {0: True, 1: True, 2: False, 3: True}, took_guided
+  np.testing.assert_array_equal(np.asarray(got.future_xy[_slot(feats, 2)]),
+                                np.asarray(rejoin.future_xy[_slot(feats, 2)]))
+  # A log that ends before the record does (object 2's last step) takes the guided target.
+  log = state.log_trajectory
+  ended = state.replace(log_trajectory=log.replace(valid=log.valid.at[2, -1].set(False)))
+  got = jax.jit(lambda *a: closed_loop.clean_rejoin_or(ended, *a, g))(rejoin, guided, feats, road)
+  assert bool(got.future_speed[_slot(feats, 2), 0] == -1.0)
+
+
 def test_on_policy_agents_whose_log_overlaps_another_box_can_be_left_out():
   """The on-policy half of drop_log_overlaps: the scene of the training test (object 0 drives
   into object 2, standing 60 m ahead in its lane) rolled out on its log to step 10: with it, 0

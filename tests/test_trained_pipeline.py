@@ -110,9 +110,9 @@ def test_both_stages_sample_and_export_as_a_shipped_model(tiny_trained, womd_pat
 
 
 def test_finetune_round_moves_both_stages_and_keeps_the_latent(tiny_trained, womd_path, tmp_path, capsys):
-  """On-policy fine-tuning (a CAT-K-style round) from the shipped folder: the
-  encoder and the denoiser move, the latent stays, and the result loads as a
-  model (both stages, so SIMPL-AR takes it too)."""
+  """On-policy fine-tuning (a CAT-K-style round, hybrid targets) from the shipped
+  folder: the encoder and the denoiser move, the latent stays, and the result
+  loads as a model (both stages, so SIMPL-AR takes it too)."""
   import pcdiff_jax
   from experiments import finetune
   from pcdiff_jax import policy
@@ -122,7 +122,8 @@ def test_finetune_round_moves_both_stages_and_keeps_the_latent(tiny_trained, wom
   argv = ["--from", tiny_trained["shipped"], "--data", womd_path, "--workdir", ft,
           "--cache-dir", os.path.join(tiny_trained["work"], "cache"),
           "--scenes", "1", "--steps", "2", "--encoder-steps", "1", "--times", "12", "13", "--max-agents", "8",
-          "--batch-size", "2", "--round-policy", "defaults", "--map-anchor", "agents", "--no-progress"]
+          "--batch-size", "2", "--round-policy", "defaults", "--map-anchor", "agents", "--no-progress",
+          "--targets", "hybrid", "--teacher-guided-steps", "1", "--teacher-inner-steps", "1"]
   assert finetune.main(argv) == 0
   # Today's inference defaults with one sample; "v8" (the default) pins what v3-v8's rounds rolled out.
   assert finetune._round_policy("defaults") == dataclasses.replace(policy.PolicyConfig(), select_samples=1)

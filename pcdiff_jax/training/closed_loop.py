@@ -57,7 +57,7 @@ from pcdiff_jax.model import guidance as guidance_lib
 from pcdiff_jax.model import latent, planner
 from pcdiff_jax.model.planner import Models
 from pcdiff_jax.sim import dynamics, env, geometry
-from pcdiff_jax.sim.datatypes import Array, SimulatorState
+from pcdiff_jax.sim.datatypes import Array, ObjectType, SimulatorState
 from pcdiff_jax.training import data as data_lib
 from pcdiff_jax.training import perturb, trainer
 from pcdiff_jax.training.data import Example, Targets
@@ -74,9 +74,12 @@ class OnPolicyConfig:
   on-policy examples; lane_tail: a log is continued past its end along the
   lane centres (`lane_continuation`), else straight at constant speed (the
   targets of rounds 0-6 of pcdiff-cpu-v5); targets: "rejoin" (the
-  simulated pose re-joins the log, `on_policy_targets`) or "guided" (the
+  simulated pose re-joins the log, `on_policy_targets`), "guided" (the
   policy's own plan at that state under objective guidance, `guided_targets`:
-  guidance distilled into the unguided model); drop_log_overlaps: an agent whose
+  guidance distilled into the unguided model) or "hybrid" (the re-joining
+  target where it stays on the road and clear of the others, the guided one
+  elsewhere: `clean_rejoin_or`, with rejoin_margin and rejoin_whole_logs);
+  drop_log_overlaps: an agent whose
   log overlaps another box in the horizon is not trained on (`data.log_overlaps_ahead`);
   drop_log_offroad: nor a vehicle whose log leaves the mapped road (`data.log_leaves_road_ahead`)."""
   times: tuple[int, ...] = (20, 30, 40, 50)
@@ -89,9 +92,11 @@ class OnPolicyConfig:
   targets: str = "rejoin"
   drop_log_overlaps: bool = False
   drop_log_offroad: bool = False
+  rejoin_margin: float = 0.3
+  rejoin_whole_logs: bool = True
 
 
-TARGETS = ("rejoin", "guided")
+TARGETS = ("rejoin", "guided", "hybrid")
 
 
 def lane_continuation(state: SimulatorState, num_steps: int, dt: float,
@@ -217,20 +222,66 @@ def guided_targets(models: Models, state: SimulatorState, feats, model_cfg: Conf
                  future_speed=zero(states[..., 3]), future_valid=mask, current_speed=speed)
 
 
+def clean_rejoin_or(state: SimulatorState, rejoin: Targets, guided: Targets, feats, road,
+                    g: guidance_lib.GuidanceConfig, margin: float = 0.3, whole_logs: bool = True) -> Targets:
+  """Targets (A, ...): each agent's re-joining target where it is usable, keeps
+  every box corner of a vehicle `margin` m inside the road edge (or, for one
+  nearer the edge now, no further out than now), and takes no agent's box
+  into another's over the guidance's collision horizon (circles, no margin;
+  the others on their chosen targets); with whole_logs, only for agents whose
+  log lasts to the record's last step (a path past an early end is a guess).
+  The guided target elsewhere: the log where the way back to it is safe
+  (the recorded drivers' kinematics), the guided plan where it leaves the
+  road or hits someone. `road`: the scene's field in the world frame
+  (`guidance.road_of`)."""
+  g = dataclasses.replace(g, map_margin=0.0, coll_margin=0.0)
+  road = road.in_frame(feats.scene_xy, feats.scene_yaw)
+  length, width = planner.agent_size(feats)
+  vehicle = feats.agent_types == ObjectType.VEHICLE
+
+  def scene_pose(t: Targets):
+    states = jnp.concatenate([t.future_xy, t.future_yaw[..., None], t.future_speed[..., None]], -1)
+    return planner.to_scene(states, feats)
+
+  usable = feats.agent_valid & rejoin.future_valid.any(-1)
+  if whole_logs:
+    usable = usable & state.log_trajectory.valid[feats.agent_index, -1]
+  agents = guidance_lib.Agents(length=length, width=width, valid=usable, vehicle=vehicle,
+                               pursuer=jnp.int32(-1), evader=jnp.int32(-1))
+  xy, yaw = scene_pose(rejoin)
+  now_xy, now_yaw = features_lib.agent_to_scene(jnp.zeros_like(xy[:, :1]), jnp.zeros_like(yaw[:, :1]), feats)
+  off_now = guidance_lib.map_excursion(now_xy, now_yaw, agents, road, g)
+  off_path = guidance_lib.map_excursion(xy, yaw, agents, road, g)
+  on_road = off_path <= jnp.maximum(off_now, -margin)                       # -inf for non-vehicles
+  pick = lambda keep: jax.tree_util.tree_map(
+      lambda r, q: jnp.where(keep.reshape(keep.shape + (1,) * (r.ndim - 1)), r, q), rejoin, guided)
+  first = pick(usable & on_road)
+  every = guidance_lib.Agents(length=length, width=width, valid=feats.agent_valid, vehicle=vehicle,
+                              pursuer=jnp.int32(-1), evader=jnp.int32(-1))
+  xy, yaw = scene_pose(first)
+  clear = guidance_lib.collision_cost(xy, yaw, every, g) <= 0.0
+  return pick(usable & on_road & clear)
+
+
 def on_policy_examples(final: SimulatorState, features: FeaturesConfig, horizon: int,
-                       cfg: OnPolicyConfig, dt: float, label=None) -> Example:
+                       cfg: OnPolicyConfig, dt: float, label=None, choose=None) -> Example:
   """Examples (S, ...) of one rolled-out scene at each step of `cfg.times`.
-  label: (state, feats, k) -> Targets of the k-th cut, for `cfg.targets` "guided"."""
+  label: (state, feats, k) -> Targets of the k-th cut, for `cfg.targets`
+  "guided" and "hybrid"; choose: (state, rejoin, guided, feats) -> Targets, for
+  "hybrid" (`clean_rejoin_or`)."""
   tail = None
-  if cfg.targets == "rejoin" and cfg.lane_tail:
+  if cfg.targets != "guided" and cfg.lane_tail:
     tail = lane_continuation(final, max(cfg.times) + horizon, dt)
 
   def at(k, t):
     state = final.replace(timestep=jnp.asarray(t, jnp.int32))
     feats = features_lib.scene_features(state, features)
-    if cfg.targets == "guided":
-      return Example(feats=feats, targets=label(state, feats, k))
-    return Example(feats=feats, targets=on_policy_targets(state, feats, horizon, cfg, dt, tail))
+    if cfg.targets == "rejoin":
+      return Example(feats=feats, targets=on_policy_targets(state, feats, horizon, cfg, dt, tail))
+    guided = label(state, feats, k)
+    if cfg.targets == "hybrid":
+      guided = choose(state, on_policy_targets(state, feats, horizon, cfg, dt, tail), guided, feats)
+    return Example(feats=feats, targets=guided)
   exs = [at(k, t) for k, t in enumerate(cfg.times)]
   return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *exs)
 
@@ -246,20 +297,22 @@ def make_collect_fn(actor, model_cfg: Config, cfg: OnPolicyConfig, teacher=None)
     raise ValueError(f"on-policy times must be >= {init}, got {cfg.times}")
   if cfg.targets not in TARGETS:
     raise ValueError(f"on-policy targets must be one of {TARGETS}, got {cfg.targets!r}")
-  if cfg.targets == "guided" and (teacher is None or teacher.guidance.mode != "objective"):
-    raise ValueError("guided on-policy targets need a teacher PolicyConfig with objective guidance")
+  if cfg.targets != "rejoin" and (teacher is None or teacher.guidance.mode != "objective"):
+    raise ValueError(f"{cfg.targets} on-policy targets need a teacher PolicyConfig with objective guidance")
 
   def one(state, rng, models):
     k_roll, k_teach = jax.random.split(rng)
     start = env.simulated_start(state, init)   # as evaluation starts a simulated method
     final = env.rollout(start, actor, num_steps, k_roll, params=models).final_state
-    label = None
-    if cfg.targets == "guided":
+    label = choose = None
+    if cfg.targets != "rejoin":
       road = guidance_lib.road_of(start, teacher.guidance)   # once per scene, around the SDC at t0
       label = lambda s, feats, k: guided_targets(models, s, feats, model_cfg, teacher,
                                                  jax.random.fold_in(k_teach, k), road)
+      choose = lambda s, rejoin, guided, feats: clean_rejoin_or(
+          s, rejoin, guided, feats, road, teacher.guidance, cfg.rejoin_margin, cfg.rejoin_whole_logs)
     return on_policy_examples(final, model_cfg.features, model_cfg.encoder.horizon, cfg,
-                              model_cfg.kinematics.dt, label)
+                              model_cfg.kinematics.dt, label, choose)
   return jax.jit(jax.vmap(one, in_axes=(0, 0, None)))
 
 
