@@ -210,6 +210,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.error(f"--targets {args.targets} is an option of --policy pcdiff")
   if not 1 <= args.teacher_guided_steps <= 5 or args.teacher_inner_steps < 1:
     p.error("--teacher-guided-steps must be in [1, 5] and --teacher-inner-steps >= 1")
+  if args.rejoin_margin < 0:
+    p.error(f"--rejoin-margin must be >= 0 (m inside the road), got {args.rejoin_margin}")
   if args.teacher_w_map < 0 or args.teacher_w_coll < 0:
     p.error("--teacher-w-map and --teacher-w-coll must be >= 0")
   return args

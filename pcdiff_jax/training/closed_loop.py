@@ -256,10 +256,8 @@ def clean_rejoin_or(state: SimulatorState, rejoin: Targets, guided: Targets, fea
   pick = lambda keep: jax.tree_util.tree_map(
       lambda r, q: jnp.where(keep.reshape(keep.shape + (1,) * (r.ndim - 1)), r, q), rejoin, guided)
   first = pick(usable & on_road)
-  every = guidance_lib.Agents(length=length, width=width, valid=feats.agent_valid, vehicle=vehicle,
-                              pursuer=jnp.int32(-1), evader=jnp.int32(-1))
   xy, yaw = scene_pose(first)
-  clear = guidance_lib.collision_cost(xy, yaw, every, g) <= 0.0
+  clear = guidance_lib.collision_cost(xy, yaw, agents.replace(valid=feats.agent_valid), g) <= 0.0
   return pick(usable & on_road & clear)
 
 
